@@ -1,0 +1,505 @@
+"""The 3DMatch on-disk layout: paths, readers and writers.
+
+Everything the project reads or writes about a data set goes through here::
+
+    <root>/splits/{train,val,test}.txt                 scene names, one per line
+    <root>/fragments/<scene>/cloud_bin_<i>.ply         points (m), fragment frame = camera of first frame
+    <root>/fragments/<scene>/cloud_bin_<i>.info.txt    "<scene> <seq> <first_frame_id> <last_frame_id>"
+    <root>/rgbd/<scene>/camera-intrinsics.txt          3x3
+    <root>/rgbd/<scene>/<seq>/frame-XXXXXX.{color.png,depth.png,pose.txt}
+    <root>/benchmarks/{3DMatch,3DLoMatch}/<scene>/{gt.log,gt.info,gt_overlap.log}
+    <root>/pairs/{train,val}.txt                       "scene i j overlap" + 4x4 (j into i), see write_pairs
+
+Conventions
+-----------
+* ``gt.log`` entry ``i j n`` holds the 4x4 that maps fragment ``j`` into fragment ``i``'s frame.
+  In a pair the *source* is ``j`` and the *target* is ``i``.
+* Poses (``.pose.txt``) are camera-to-world.
+* ``gt.info`` is the 6x6 information matrix, translation first (3DMatch convention).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from pcrcg.errors import DataError
+
+BENCHMARKS = ("3DMatch", "3DLoMatch")
+SPLITS = ("train", "val", "test")
+
+
+# --------------------------------------------------------------------------- records
+
+
+@dataclass(frozen=True)
+class PairRecord:
+    """One pair of fragments of a scene: ``transform`` (4x4) maps fragment j into fragment i."""
+
+    scene: str
+    i: int
+    j: int
+    transform: np.ndarray
+    overlap: float = float("nan")
+    n_fragments: int = 0
+
+
+@dataclass(frozen=True)
+class FragmentInfo:
+    """The frames fused into one fragment (the first line of ``cloud_bin_<i>.info.txt``)."""
+
+    scene: str
+    seq: str
+    first_frame: int
+    last_frame: int
+
+    def frame_ids(self) -> list[int]:
+        return list(range(self.first_frame, self.last_frame + 1))
+
+
+# --------------------------------------------------------------------------- paths
+
+
+class Layout:
+    """Paths of a data set in the 3DMatch layout rooted at ``root``."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    def split_file(self, split: str) -> Path:
+        return self.root / "splits" / f"{split}.txt"
+
+    def pairs_file(self, split: str) -> Path:
+        return self.root / "pairs" / f"{split}.txt"
+
+    def fragments_dir(self, scene: str) -> Path:
+        return self.root / "fragments" / scene
+
+    def fragment(self, scene: str, i: int) -> Path:
+        return self.fragments_dir(scene) / f"cloud_bin_{i}.ply"
+
+    def fragment_info(self, scene: str, i: int) -> Path:
+        return self.fragments_dir(scene) / f"cloud_bin_{i}.info.txt"
+
+    def rgbd_dir(self, scene: str) -> Path:
+        return self.root / "rgbd" / scene
+
+    def intrinsics(self, scene: str) -> Path:
+        return self.rgbd_dir(scene) / "camera-intrinsics.txt"
+
+    def frame_prefix(self, scene: str, seq: str, frame: int) -> Path:
+        return self.rgbd_dir(scene) / seq / f"frame-{frame:06d}"
+
+    def benchmark_dir(self, benchmark: str, scene: str | None = None) -> Path:
+        d = self.root / "benchmarks" / benchmark
+        return d / scene if scene is not None else d
+
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    def scenes(self, split: str) -> list[str]:
+        return read_split(self.split_file(split))
+
+    def n_fragments(self, scene: str) -> int:
+        d = self.fragments_dir(scene)
+        if not d.is_dir():
+            raise DataError(d, "fragment folder of scene is missing")
+        return len(list(d.glob("cloud_bin_*.ply")))
+
+
+def frame_paths(prefix: Path) -> tuple[Path, Path, Path]:
+    """(color, depth, pose) paths of a frame given ``.../frame-XXXXXX``."""
+    return (
+        prefix.with_name(prefix.name + ".color.png"),
+        prefix.with_name(prefix.name + ".depth.png"),
+        prefix.with_name(prefix.name + ".pose.txt"),
+    )
+
+
+# --------------------------------------------------------------------------- text files
+
+
+def _need(path: Path) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "file is missing")
+    return path
+
+
+def read_split(path: str | os.PathLike) -> list[str]:
+    path = _need(Path(path))
+    return [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+
+
+def write_split(path: str | os.PathLike, scenes: Iterable[str]) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{s}\n" for s in scenes))
+
+
+def read_matrix(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
+    """Read a whitespace-separated matrix of ``shape``; NaN/inf or a wrong count is an error."""
+    path = _need(Path(path))
+    try:
+        vals = np.array(path.read_text().split(), dtype=np.float64)
+    except ValueError as exc:
+        raise DataError(path, f"not a numeric matrix ({exc})") from None
+    if vals.size != shape[0] * shape[1]:
+        raise DataError(path, f"expected {shape[0]}x{shape[1]} numbers, found {vals.size}")
+    if not np.all(np.isfinite(vals)):
+        raise DataError(path, "matrix holds NaN or inf")
+    return vals.reshape(shape)
+
+
+def check_rigid(T: np.ndarray, where: object, tol: float = 1e-3) -> np.ndarray:
+    """Raise DataError unless ``T`` (4x4) is a finite rigid transform."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise DataError(where, f"transform must be 4x4, got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise DataError(where, "transform holds NaN or inf")
+    R = T[:3, :3]
+    if (
+        np.abs(R @ R.T - np.eye(3)).max() > tol
+        or abs(np.linalg.det(R) - 1.0) > tol
+        or np.abs(T[3] - [0, 0, 0, 1]).max() > tol
+    ):
+        raise DataError(where, "transform is not rigid (rotation not orthonormal or last row not 0 0 0 1)")
+    return T
+
+
+def read_pose(path: str | os.PathLike) -> np.ndarray:
+    """A 4x4 camera-to-world pose, checked to be rigid."""
+    return check_rigid(read_matrix(path, (4, 4)), path)
+
+
+def write_matrix(path: str | os.PathLike, M: np.ndarray) -> None:
+    Path(path).write_text(format_matrix(M))
+
+
+def format_matrix(M: np.ndarray) -> str:
+    return "".join("\t".join(f"{v: .10e}" for v in row) + "\n" for row in np.asarray(M))
+
+
+def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
+    K = read_matrix(path, (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
+        raise DataError(path, "not a pinhole intrinsics matrix (fx, fy > 0, last row 0 0 1)")
+    return K
+
+
+def read_fragment_info(path: str | os.PathLike) -> FragmentInfo:
+    path = _need(Path(path))
+    parts = path.read_text().split("\n", 1)[0].split()
+    if len(parts) < 4:
+        raise DataError(path, "first line must be '<scene> <seq> <first_frame_id> <last_frame_id>'")
+    try:
+        first, last = int(parts[2]), int(parts[3])
+    except ValueError:
+        raise DataError(path, "frame ids on the first line are not integers") from None
+    if last < first:
+        raise DataError(path, f"last frame {last} precedes first frame {first}")
+    return FragmentInfo(parts[0], parts[1], first, last)
+
+
+def write_fragment_info(path: str | os.PathLike, info: FragmentInfo, extra: str = "") -> None:
+    text = f"{info.scene} {info.seq} {info.first_frame} {info.last_frame}\n" + extra
+    Path(path).write_text(text)
+
+
+# --------------------------------------------------------------------------- gt files
+
+
+def read_gt_log(path: str | os.PathLike, scene: str = "") -> list[PairRecord]:
+    """Entries of a ``gt.log`` / ``est.log``: ``i j n`` then a 4x4 (j into i)."""
+    path = _need(Path(path))
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if len(lines) % 5:
+        raise DataError(path, f"{len(lines)} non-empty lines; a gt.log holds groups of 5")
+    out = []
+    for k in range(0, len(lines), 5):
+        head = lines[k]
+        try:
+            i, j, n = int(head[0]), int(head[1]), int(head[2])
+            T = np.array(lines[k + 1 : k + 5], dtype=np.float64)
+        except (ValueError, IndexError):
+            raise DataError(path, f"malformed entry at line {k + 1}") from None
+        if T.shape != (4, 4):
+            raise DataError(path, f"entry at line {k + 1}: transform is not 4x4")
+        if not np.all(np.isfinite(T)):
+            raise DataError(path, f"entry at line {k + 1}: transform holds NaN or inf")
+        out.append(PairRecord(scene, i, j, T, n_fragments=n))
+    return out
+
+
+def write_gt_log(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
+    buf = io.StringIO()
+    for p in pairs:
+        buf.write(f"{p.i}\t {p.j}\t {p.n_fragments}\t\n")
+        buf.write(format_matrix(p.transform))
+    _atomic_write_text(Path(path), buf.getvalue())
+
+
+def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
+    """``gt.info``: ``i j n`` then a 6x6 information matrix per pair."""
+    path = _need(Path(path))
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if len(lines) % 7:
+        raise DataError(path, f"{len(lines)} non-empty lines; a gt.info holds groups of 7")
+    out = {}
+    for k in range(0, len(lines), 7):
+        try:
+            i, j = int(lines[k][0]), int(lines[k][1])
+            M = np.array(lines[k + 1 : k + 7], dtype=np.float64)
+        except (ValueError, IndexError):
+            raise DataError(path, f"malformed entry at line {k + 1}") from None
+        if M.shape != (6, 6):
+            raise DataError(path, f"entry at line {k + 1}: information matrix is not 6x6")
+        out[(i, j)] = M
+    return out
+
+
+def write_gt_info(
+    path: str | os.PathLike, pairs: Sequence[PairRecord], infos: Sequence[np.ndarray]
+) -> None:
+    buf = io.StringIO()
+    for p, M in zip(pairs, infos, strict=True):
+        buf.write(f"{p.i}\t {p.j}\t {p.n_fragments}\t\n")
+        buf.write(format_matrix(M))
+    _atomic_write_text(Path(path), buf.getvalue())
+
+
+def read_gt_overlap(path: str | os.PathLike) -> dict[tuple[int, int], float]:
+    """``gt_overlap.log``: lines ``i,j,overlap``."""
+    path = _need(Path(path))
+    out = {}
+    for n, ln in enumerate(path.read_text().splitlines(), 1):
+        if not ln.strip():
+            continue
+        parts = ln.replace(",", " ").split()
+        try:
+            out[(int(parts[0]), int(parts[1]))] = float(parts[2])
+        except (ValueError, IndexError):
+            raise DataError(path, f"line {n} is not 'i,j,overlap'") from None
+    return out
+
+
+def write_gt_overlap(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
+    _atomic_write_text(Path(path), "".join(f"{p.i},{p.j},{p.overlap:.4f}\n" for p in pairs))
+
+
+def write_pairs(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
+    """Training/validation pairs: ``scene i j overlap`` then the 4x4 (j into i)."""
+    buf = io.StringIO()
+    for p in pairs:
+        buf.write(f"{p.scene} {p.i} {p.j} {p.overlap:.4f}\n")
+        buf.write(format_matrix(p.transform))
+    _atomic_write_text(Path(path), buf.getvalue())
+
+
+def read_pairs(path: str | os.PathLike) -> list[PairRecord]:
+    path = _need(Path(path))
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if len(lines) % 5:
+        raise DataError(path, "a pairs file holds groups of 5 lines")
+    out = []
+    for k in range(0, len(lines), 5):
+        h = lines[k]
+        try:
+            T = np.array(lines[k + 1 : k + 5], dtype=np.float64)
+            out.append(PairRecord(h[0], int(h[1]), int(h[2]), T, float(h[3])))
+        except (ValueError, IndexError):
+            raise DataError(path, f"malformed entry at line {k + 1}") from None
+    return out
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- images
+
+
+def read_color(path: str | os.PathLike) -> np.ndarray:
+    """An RGB image as (H, W, 3) uint8. A missing or undecodable file is a DataError."""
+    import cv2
+
+    path = _need(Path(path))
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DataError(path, "cannot decode the color image (corrupt or truncated PNG?)")
+    _check_png_complete(path)
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def read_depth(path: str | os.PathLike, depth_scale: float = 1000.0) -> np.ndarray:
+    """A depth PNG (uint16, mm, 0 = none) as (H, W) float32 metres (0 = none)."""
+    import cv2
+
+    path = _need(Path(path))
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(path, "cannot decode the depth image (corrupt or truncated PNG?)")
+    if img.ndim != 2 or img.dtype != np.uint16:
+        raise DataError(path, f"depth must be a single-channel uint16 PNG, got {img.dtype} {img.shape}")
+    _check_png_complete(path)
+    return img.astype(np.float32) / np.float32(depth_scale)
+
+
+def _check_png_complete(path: Path) -> None:
+    """OpenCV decodes some truncated PNGs silently (rows of zeros); require the IEND chunk."""
+    if path.suffix.lower() != ".png":
+        return
+    with open(path, "rb") as f:
+        f.seek(max(0, path.stat().st_size - 12))
+        tail = f.read()
+    if b"IEND" not in tail:
+        raise DataError(path, "PNG is truncated (no IEND chunk)")
+
+
+def write_color(path: str | os.PathLike, rgb: np.ndarray) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1])):
+        raise DataError(path, "could not write image")
+
+
+def write_depth(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float = 1000.0) -> None:
+    import cv2
+
+    mm = np.clip(np.round(depth_m * depth_scale), 0, 65535).astype(np.uint16)
+    if not cv2.imwrite(str(path), mm):
+        raise DataError(path, "could not write depth image")
+
+
+# --------------------------------------------------------------------------- point clouds
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY: float32 xyz, optional uint8 rgb (colors in [0, 1] or uint8)."""
+    pts = np.asarray(points, dtype="<f4")
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
+    header += [f"property float {c}" for c in "xyz"]
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        col = np.asarray(colors)
+        if col.dtype != np.uint8:
+            col = np.clip(np.round(col * 255.0), 0, 255).astype(np.uint8)
+        header += [f"property uchar {c}" for c in ("red", "green", "blue")]
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    header.append("end_header")
+    rec = np.empty(len(pts), dtype=fields)
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if colors is not None:
+        rec["red"], rec["green"], rec["blue"] = col[:, 0], col[:, 1], col[:, 2]
+    path = Path(path)
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(rec.tobytes())
+    os.replace(tmp, path)
+
+
+def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) float32 and colors (N, 3) float32 in [0, 1] or None.
+
+    Reads ``.ply`` / ``.pcd`` (Open3D), ``.npz`` (keys ``points``/``pcd``/``xyz`` and optional
+    ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
+    ``torch.load(weights_only=True)`` and, failing that, parsed as an array archive; no code
+    from the file is ever executed.
+    """
+    path = _need(Path(path))
+    suffix = path.suffix.lower()
+    if suffix in (".ply", ".pcd"):
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(path))
+        pts = np.asarray(pcd.points, dtype=np.float32)
+        if len(pts) == 0:
+            raise DataError(path, "point cloud is empty or unreadable")
+        cols = np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else None
+        return _check_points(pts, path), cols
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            key = next((k for k in ("points", "pcd", "xyz") if k in z), None)
+            if key is None:
+                raise DataError(path, f"npz has no 'points' array (keys: {sorted(z.files)})")
+            pts = np.asarray(z[key], dtype=np.float32)
+            cols = np.asarray(z["colors"], dtype=np.float32) if "colors" in z else None
+        return _check_points(pts, path), cols
+    if suffix == ".pth":
+        return _check_points(_load_pth_points(path), path), None
+    raise DataError(path, f"unsupported point cloud format {suffix!r} (use .ply, .pcd, .npz or .pth)")
+
+
+def _check_points(pts: np.ndarray, path: Path) -> np.ndarray:
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise DataError(path, f"expected an (N, 3) array of points, got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise DataError(path, "points hold NaN or inf")
+    return pts
+
+
+def _load_pth_points(path: Path) -> np.ndarray:
+    import pickle
+
+    import torch
+
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, zipfile.BadZipFile, EOFError) as exc:
+        # Predator's fragments are numpy arrays saved with torch.save; the safe unpickler
+        # refuses numpy's reconstructors, so fall back to our own array-only unpickler.
+        try:
+            obj = _restricted_numpy_unpickle(path)
+        except Exception as exc2:  # noqa: BLE001 - reported with the file name
+            raise DataError(
+                path, f"cannot read .pth safely ({exc.__class__.__name__}; {exc2})"
+            ) from None
+    if isinstance(obj, dict):
+        obj = next((obj[k] for k in ("points", "pcd", "xyz") if k in obj), None)
+        if obj is None:
+            raise DataError(path, "dict in .pth has no 'points' entry")
+    if hasattr(obj, "numpy"):
+        obj = obj.numpy()
+    return np.asarray(obj, dtype=np.float32)
+
+
+_ALLOWED_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("collections", "OrderedDict"),
+}
+
+
+def _restricted_numpy_unpickle(path: Path):
+    """Unpickle a torch.save'd numpy array allowing only numpy's array reconstructors."""
+    import pickle
+
+    class _Restricted(pickle.Unpickler):
+        def find_class(self, module, name):
+            if (module, name) in _ALLOWED_GLOBALS:
+                return super().find_class(module, name)
+            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed")
+
+    raw = path.read_bytes()
+    if raw[:2] == b"PK":  # torch zip container: the pickle is archive/data.pkl
+        with zipfile.ZipFile(io.BytesIO(raw)) as zf:
+            name = next(n for n in zf.namelist() if n.endswith("data.pkl"))
+            raw = zf.read(name)
+            if b"persistent_load" in raw:
+                raise pickle.UnpicklingError("tensor storages are not supported here")
+    return _Restricted(io.BytesIO(raw)).load()
