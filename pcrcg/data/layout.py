@@ -482,6 +482,7 @@ _ALLOWED_GLOBALS = {
     ("numpy.core.multiarray", "scalar"),
     ("numpy._core.multiarray", "scalar"),
     ("collections", "OrderedDict"),
+    ("_codecs", "encode"),  # how pickle protocol 2 stores raw array bytes
 }
 
 

@@ -1,0 +1,466 @@
+"""Validation of the run config (``python -m pcrcg.run``) before any work starts.
+
+Three layers, each raising :class:`pcrcg.errors.ConfigError` that names the setting and
+the allowed values:
+
+* :func:`check_overrides`: command-line / sweep overrides, before Hydra composes anything
+  (``projection=foo`` names the options that exist, ``window_size=0,3`` the allowed sizes);
+* :func:`validate_run_config`: the composed config, against structured schemas
+  (dataclasses merged with OmegaConf, then instantiated so that their checks run) for the
+  top-level keys and the ``logger``/``profile`` groups, the option chosen for every other
+  group, and the rules that tie settings together;
+* :func:`preflight`: resources the run needs that are not part of the config itself
+  (weights files); the pipeline calls it inside the tracked run so that a sweep records
+  the variant as not run, with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
+
+from pcrcg.data.layout import BENCHMARKS
+from pcrcg.errors import ConfigError
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+METHODS = ("learned", "fpfh", "icp", "color_icp", "sift_dlt")
+CLASSICAL_METHODS = METHODS[1:]
+ICP_METHODS = ("icp", "color_icp")
+VIEWS = (1, 2, 3)
+ICP_INIT = ("identity", "learned")
+N_POINTS = (5000, 2500, 1000, 500, 250)
+MAX_WINDOW = 101
+
+# config groups composed by conf/run.yaml, in its defaults order
+GROUPS = ("data", "profile", "model", "encoder2d", "features", "projection", "matcher2d", "trainer", "logger")
+# the implementations the code knows; a group folder's option files are checked against this
+KNOWN_OPTIONS: dict[str, tuple[str, ...]] = {
+    "data": ("synthmatch", "redkitchen", "threedmatch"),
+    "profile": ("tiny", "cpu", "paper"),
+    "encoder2d": ("scratch", "imagenet", "pri3d"),
+    "features": ("none", "rgb", "sift", "deep"),
+    "projection": ("none", "implicit", "explicit"),
+    "logger": ("mlflow", "none"),
+}
+# group options whose encoder needs a weights file
+PRETRAINED_ENCODERS = ("imagenet", "pri3d")
+
+
+def _fmt(values: Iterable[Any]) -> str:
+    vals = [str(v) for v in values]
+    return "one of " + ", ".join(vals) if len(vals) > 1 else (vals[0] if vals else "(none)")
+
+
+# --------------------------------------------------------------------------- schemas
+
+
+def _one_of(setting: str, value: Any, allowed: Sequence[Any]) -> None:
+    if value not in allowed:
+        raise ConfigError(setting, value, _fmt(allowed))
+
+
+def _int_at_least(setting: str, value: Any, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ConfigError(setting, value, f"an integer >= {low}")
+
+
+def _positive(setting: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ConfigError(setting, value, "a number > 0")
+
+
+@dataclass
+class EvalSchema:
+    """``eval``: the 3DMatch protocol (Predator's settings by default)."""
+
+    benchmarks: list[str] = field(default_factory=lambda: list(BENCHMARKS))
+    n_points: list[int] = field(default_factory=lambda: list(N_POINTS))
+    ransac_iterations: int = 50000
+    ransac_distance: float = 0.05
+    inlier_distance: float = 0.1
+    fmr_threshold: float = 0.05
+    rmse_threshold: float = 0.2
+    max_pairs: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        if not self.benchmarks:
+            raise ConfigError("eval.benchmarks", self.benchmarks, f"a non-empty list of {_fmt(BENCHMARKS)}")
+        for b in self.benchmarks:
+            _one_of("eval.benchmarks", b, BENCHMARKS)
+        if not self.n_points:
+            raise ConfigError("eval.n_points", self.n_points, "a non-empty list of positive integers")
+        for n in self.n_points:
+            _int_at_least("eval.n_points", n, 1)
+        _int_at_least("eval.ransac_iterations", self.ransac_iterations, 1)
+        for name in ("ransac_distance", "inlier_distance", "rmse_threshold"):
+            _positive(f"eval.{name}", getattr(self, name))
+        if not 0 < self.fmr_threshold < 1:
+            raise ConfigError("eval.fmr_threshold", self.fmr_threshold, "a fraction in (0, 1)")
+        if self.max_pairs is not None:
+            _int_at_least("eval.max_pairs", self.max_pairs, 1)
+
+
+@dataclass
+class StagesSchema:
+    """``stages``: dotted paths of the functions that run each stage (``module.function``)."""
+
+    prepare: str = "pcrcg.pipeline.prepare_data"
+    train: str = "pcrcg.pipeline.train_model"
+    evaluate: str = "pcrcg.pipeline.evaluate_method"
+
+    def __post_init__(self) -> None:
+        for name in ("prepare", "train", "evaluate"):
+            path = getattr(self, name)
+            problem = _import_problem(path)
+            if problem:
+                raise ConfigError(f"stages.{name}", path, f"an importable function 'module.function' ({problem})")
+
+
+def _import_problem(path: str) -> str | None:
+    """Why ``module.function`` cannot be called, or None when it can."""
+    import importlib
+
+    module, _, attr = str(path).rpartition(".")
+    if not module:
+        return "no module part"
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as e:
+        return f"cannot import {module}: {e}"
+    if not callable(getattr(mod, attr, None)):
+        return f"{module} has no function {attr}"
+    return None
+
+
+@dataclass
+class RunSchema:
+    """The top-level keys of ``conf/run.yaml``."""
+
+    experiment_name: str = "default"
+    method: str = "learned"
+    seed: int = 0
+    data_seed: int = 0
+    views: int = 2
+    window_size: int = 11
+    icp_init: str = "identity"
+    eval: EvalSchema = field(default_factory=EvalSchema)
+    stages: StagesSchema = field(default_factory=StagesSchema)
+
+    def __post_init__(self) -> None:
+        check_top_level("experiment_name", self.experiment_name)
+        for key in ("method", "seed", "data_seed", "views", "window_size", "icp_init"):
+            check_top_level(key, getattr(self, key))
+
+
+def check_top_level(key: str, value: Any) -> None:
+    """Check one top-level value alone (used for the composed config and for sweep values)."""
+    if key == "experiment_name":
+        if not isinstance(value, str) or not value.strip() or "/" in value:
+            raise ConfigError(key, value, "a non-empty name without '/'")
+    elif key == "method":
+        _one_of(key, value, METHODS)
+    elif key in ("seed", "data_seed"):
+        _int_at_least(key, value, 0)
+    elif key == "views":
+        _one_of(key, value, VIEWS)
+    elif key == "window_size":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1 or value > MAX_WINDOW or value % 2 == 0:
+            raise ConfigError(key, value, f"an odd integer from 1 to {MAX_WINDOW} (the paper: 3, 7, 11, 17)")
+    elif key == "icp_init":
+        _one_of(key, value, ICP_INIT)
+
+
+TOP_LEVEL_KEYS = ("experiment_name", "method", "seed", "data_seed", "views", "window_size", "icp_init")
+
+
+@dataclass
+class LoggerSchema:
+    """``logger`` group (conf/logger/)."""
+
+    name: str = "mlflow"
+    tracking_uri: Optional[str] = None
+    skip_finished: bool = True
+    log_checkpoint: bool = True
+
+    def __post_init__(self) -> None:
+        _one_of("logger.name", self.name, KNOWN_OPTIONS["logger"])
+
+
+@dataclass
+class ProfileNameSchema:
+    name: str = "cpu"
+
+    def __post_init__(self) -> None:
+        _one_of("profile.name", self.name, KNOWN_OPTIONS["profile"])
+
+
+GROUP_SCHEMAS: dict[str, type] = {"logger": LoggerSchema, "profile": ProfileNameSchema}
+
+
+def _structured_check(schema: type, data: Mapping[str, Any], prefix: str) -> Any:
+    """Merge the schema's fields present in ``data`` into ``schema`` and instantiate it.
+
+    OmegaConf checks the types, the dataclass ``__post_init__`` checks the values.
+    """
+    picked = _pick(schema, data)
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), picked)
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as e:
+        key = f"{prefix}{e.full_key}" if getattr(e, "full_key", None) else prefix.rstrip(".")
+        value = getattr(e, "value", None)
+        expected = _expected_from_schema(schema, str(e.full_key or ""))
+        raise ConfigError(key, value if value is not None else _lookup(data, str(e.full_key or "")), expected) from None
+
+
+def _pick(schema: type, data: Mapping[str, Any]) -> dict[str, Any]:
+    """The part of ``data`` that ``schema`` describes (recursively); other keys are not its business."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(schema):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        sub = f.default_factory if f.default_factory is not dataclasses.MISSING else None  # type: ignore[misc]
+        if dataclasses.is_dataclass(sub) and isinstance(value, Mapping):
+            value = _pick(sub, value)  # type: ignore[arg-type]
+        out[f.name] = value
+    return out
+
+
+def _lookup(data: Mapping[str, Any], dotted: str) -> Any:
+    node: Any = data
+    for part in dotted.split(".") if dotted else []:
+        if isinstance(node, Mapping):
+            node = node.get(part)
+    return node
+
+
+def _expected_from_schema(schema: type, dotted: str) -> str:
+    """Human text for the type a schema field expects (``an integer``, ``a list of ...``)."""
+    import typing
+
+    node: Any = schema
+    for part in dotted.split(".") if dotted else []:
+        hints = typing.get_type_hints(node) if dataclasses.is_dataclass(node) else {}
+        if part not in hints:
+            return "a value of the documented type"
+        node = hints[part]
+    text = str(node)
+    for name, words in (("list[int]", "a list of integers"), ("list[str]", "a list of names"),
+                        ("int", "an integer"), ("float", "a number"), ("bool", "true or false"),
+                        ("str", "a string")):
+        if name in text:
+            return words
+    return "a value of the documented type"
+
+
+# --------------------------------------------------------------------------- options on disk
+
+
+def group_options(group: str, search_dirs: Sequence[Path] = (CONF_DIR,)) -> list[str]:
+    """Names of the option files of ``group`` (``conf/<group>/*.yaml``) in the search dirs."""
+    names: set[str] = set()
+    for d in search_dirs:
+        gd = Path(d) / group
+        if gd.is_dir():
+            names.update(p.stem for p in gd.glob("*.yaml"))
+    return sorted(names)
+
+
+def _element_value(v: Any) -> Any:
+    text = getattr(v, "text", None)  # hydra QuotedString
+    return text if text is not None else v
+
+
+def check_overrides(overrides: Sequence[str], search_dirs: Sequence[Path] = (CONF_DIR,)) -> None:
+    """Check command-line or sweep overrides before Hydra composes them.
+
+    Group overrides (``projection=foo``, ``+experiment=bar``, sweeps ``views=1,5``) must name
+    existing options; top-level values must pass their checks. Other keys are left to
+    :func:`validate_run_config`.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    for ov in parsed:
+        if ov.is_delete() or ov.is_hydra_override():
+            continue
+        key = ov.key_or_group
+        if ov.is_sweep_override():
+            if not ov.is_discrete_sweep():
+                continue
+            values = [_element_value(v) for v in ov.sweep_iterator()]
+        else:
+            values = [ov.value()]
+        if key in GROUPS or key == "experiment":
+            available = group_options(key, search_dirs)
+            for v in values:
+                if str(v) not in available:
+                    raise ConfigError(key, v, _fmt(available))
+        elif key in TOP_LEVEL_KEYS:
+            for v in values:
+                check_top_level(key, v)
+
+
+def check_sweep_params(params: Mapping[str, Any], search_dirs: Sequence[Path] = (CONF_DIR,)) -> None:
+    """Check ``hydra.sweeper.params`` (``{key: "a,b,c"}``) like command-line sweeps."""
+    check_overrides([f"{k}={v}" for k, v in params.items()], search_dirs)
+
+
+# --------------------------------------------------------------------------- composed config
+
+
+def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = None,
+                        search_dirs: Sequence[Path] = (CONF_DIR,)) -> RunSchema:
+    """Validate a composed run config; return its typed top-level part.
+
+    ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known.
+    """
+    try:
+        data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    except OmegaConfBaseException as e:
+        raise ConfigError(str(getattr(e, "full_key", "") or "?"), "???", f"a value ({e.msg if hasattr(e, 'msg') else e})") from None
+    assert isinstance(data, dict)
+    data.pop("hydra", None)
+
+    top = _structured_check(RunSchema, data, "")
+    for group in GROUPS:
+        node = data.get(group)
+        if node is None:
+            raise ConfigError(group, None, f"a config group: {_fmt(group_options(group, search_dirs) or ['(see conf/)'])}")
+        if group in GROUP_SCHEMAS and isinstance(node, Mapping):
+            _structured_check(GROUP_SCHEMAS[group], node, f"{group}.")
+        chosen = (choices or {}).get(group)
+        available = group_options(group, search_dirs)
+        if chosen is not None and available and chosen not in available:
+            raise ConfigError(group, chosen, _fmt(available))
+        name = node.get("name") if isinstance(node, Mapping) else None
+        known = KNOWN_OPTIONS.get(group)
+        if name is not None and known is not None and name not in known:
+            raise ConfigError(f"{group}.name", name, _fmt(known))
+    _check_rules(top, data)
+    return top
+
+
+def _group_name(data: Mapping[str, Any], group: str) -> str | None:
+    node = data.get(group)
+    return node.get("name") if isinstance(node, Mapping) else None
+
+
+def color_enabled(data: Mapping[str, Any]) -> bool:
+    """Whether a learned run lifts 2D features: features and projection both set."""
+    feats = _group_name(data, "features")
+    proj = _group_name(data, "projection")
+    return feats not in (None, "none") and proj not in (None, "none")
+
+
+def _fraction(setting: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise ConfigError(setting, value, "a number in (0, 1]")
+
+
+# settings inside other stages' groups, checked when present (their code checks them again)
+GROUP_RULES: dict[str, Any] = {
+    "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
+    "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
+    "features.dim": lambda k, v: _int_at_least(k, v, 0),
+    "projection.views": lambda k, v: _one_of(k, v, VIEWS),
+    "projection.window_size": lambda k, v: check_top_level("window_size", v),
+    "projection.depth_tolerance": _positive,
+    "matcher2d.method": lambda k, v: _one_of(k, v, ("sift", "orb")),
+    "matcher2d.ratio": _fraction,
+    "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
+    "data.workers": lambda k, v: _int_at_least(k, v, 1),
+}
+
+
+def _check_group_rules(data: Mapping[str, Any]) -> None:
+    for key, check in GROUP_RULES.items():
+        group, name = key.split(".", 1)
+        node = data.get(group)
+        if isinstance(node, Mapping) and name in node and node[name] is not None:
+            try:
+                check(key, node[name])
+            except ConfigError as e:
+                raise ConfigError(key, e.value, e.allowed) from None
+
+
+def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
+    """Rules that tie several settings together."""
+    _check_group_rules(data)
+    if top.icp_init == "learned" and top.method not in ICP_METHODS:
+        raise ConfigError("icp_init", top.icp_init, f"identity unless method is {_fmt(ICP_METHODS)}")
+    feats = _group_name(data, "features")
+    proj = _group_name(data, "projection")
+    if top.method == "learned" and feats not in (None, "none") and proj in ("none",):
+        raise ConfigError("projection", proj, f"implicit or explicit when features={feats}")
+
+
+def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
+    """Check resources the run needs: weights files named in the config exist.
+
+    A pretrained 2D encoder (``encoder2d`` imagenet/pri3d, used when color is on) needs its
+    weights file; any configured ``weights``/``checkpoint`` path must exist.
+    """
+    data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    assert isinstance(data, dict)
+    data.pop("hydra", None)
+    method = data.get("method", "learned")
+    needs_2d = method == "learned" or data.get("icp_init") == "learned"
+    uses_encoder = needs_2d and color_enabled(data) and _group_name(data, "features") == "deep"
+    enc = data.get("encoder2d") if isinstance(data.get("encoder2d"), Mapping) else {}
+    enc_name = enc.get("name")
+    if uses_encoder and enc_name in PRETRAINED_ENCODERS:
+        key = next((k for k in ("weights", "checkpoint", "path") if k in enc), "weights")
+        if not enc.get(key):
+            raise ConfigError(f"encoder2d.{key}", enc.get(key),
+                              f"a local file with the {enc_name} weights of the 2D encoder "
+                              f"(set encoder2d.{key}=/path/to/file; nothing is downloaded)")
+    for path, value in _weight_paths(data):
+        if not Path(str(value)).expanduser().is_file():
+            raise ConfigError(path, value, "an existing local file")
+
+
+def _weight_paths(data: Mapping[str, Any], prefix: str = "") -> Iterable[tuple[str, Any]]:
+    """(dotted key, value) of non-empty ``weights``/``*_weights``/``checkpoint`` settings of groups."""
+    for k, v in data.items():
+        if k in ("hydra", "paths", "stages", "runtime", "logger"):
+            continue
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            yield from _weight_paths(v, key + ".")
+        elif isinstance(v, str) and v and prefix and (k in ("weights", "checkpoint") or k.endswith("_weights")):
+            yield key, v
+
+
+# --------------------------------------------------------------------------- compose (API)
+
+
+def load_run_config(overrides: Sequence[str] = (), config_dir: str | Path | None = None,
+                    config_name: str = "run", validate: bool = True) -> DictConfig:
+    """Compose ``conf/run.yaml`` with ``overrides`` (Hydra's compose API) and validate it.
+
+    For notebooks and tests; ``python -m pcrcg.run`` does the same through ``@hydra.main``.
+    The returned config has no ``hydra`` node.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    cdir = Path(config_dir) if config_dir is not None else CONF_DIR
+    check_overrides(overrides, [cdir])
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(cdir.resolve()), version_base="1.3"):
+        cfg = compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
+    choices = dict(cfg.hydra.runtime.choices)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    if validate:
+        validate_run_config(cfg, choices, [cdir])
+    return cfg
+

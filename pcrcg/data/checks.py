@@ -1,0 +1,201 @@
+"""Consistency checks of a data set in the layout, beyond "the files are there".
+
+``python -m pcrcg.data.checks ROOT`` prints one line per check and exits non-zero on failure:
+
+* layout: splits, fragments, info files, frames, intrinsics, benchmark files all present;
+* pose/gt.log agreement: each ``gt.log`` / pairs transform equals inv(P_i) P_j from the frames'
+  poses (first frame of each fragment), where frames are available;
+* overlap: recomputed overlaps match ``gt_overlap.log`` / the pairs files;
+* gt.info: recomputed information matrices match ``gt.info``;
+* depth agreement: a fragment's points projected into its first frame agree with that frame's
+  depth map (median |dz| small) — the fragment really is in that camera's frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pcrcg.data.layout import (
+    BENCHMARKS,
+    SPLITS,
+    Layout,
+    frame_paths,
+    read_cloud,
+    read_depth,
+    read_fragment_info,
+    read_gt_info,
+    read_gt_log,
+    read_gt_overlap,
+    read_intrinsics,
+    read_pairs,
+    read_pose,
+)
+from pcrcg.data.pairs import OVERLAP_RADIUS, info_matrix, overlap_ratio, voxel_downsample
+from pcrcg.errors import DataError
+from pcrcg.geometry import invert, project
+
+
+@dataclass
+class CheckReport:
+    passed: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    measures: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+def check_layout(root: str | Path) -> list[str]:
+    """Every file the layout promises; returns the missing paths (empty when complete)."""
+    layout = Layout(root)
+    missing = []
+    if not layout.root.is_dir():
+        return [str(layout.root)]
+    for split in SPLITS:
+        if not layout.split_file(split).is_file():
+            missing.append(str(layout.split_file(split)))
+    if missing:
+        return missing
+    scenes = [s for sp in SPLITS for s in layout.scenes(sp)]
+    for scene in scenes:
+        d = layout.fragments_dir(scene)
+        if not d.is_dir():
+            missing.append(str(d))
+            continue
+        for ply in sorted(d.glob("cloud_bin_*.ply")):
+            i = int(ply.stem.split("_")[-1])
+            info = layout.fragment_info(scene, i)
+            if not info.is_file():
+                continue  # fragments without frames (e.g. a .pth release) have no views
+            fi = read_fragment_info(info)
+            if not layout.intrinsics(scene).is_file():
+                missing.append(str(layout.intrinsics(scene)))
+            for fid in (fi.first_frame, fi.last_frame, (fi.first_frame + fi.last_frame) // 2):
+                for p in frame_paths(layout.frame_prefix(scene, fi.seq, fid)):
+                    if not p.is_file():
+                        missing.append(str(p))
+    for scene in layout.scenes("test"):
+        for b in BENCHMARKS:
+            for f in ("gt.log", "gt.info", "gt_overlap.log"):
+                p = layout.benchmark_dir(b, scene) / f
+                if not p.is_file():
+                    missing.append(str(p))
+    return sorted(set(missing))
+
+
+def _first_pose(layout: Layout, scene: str, i: int) -> np.ndarray | None:
+    p = layout.fragment_info(scene, i)
+    if not p.is_file():
+        return None
+    fi = read_fragment_info(p)
+    return read_pose(frame_paths(layout.frame_prefix(scene, fi.seq, fi.first_frame))[2])
+
+
+def check_dataset(root: str | Path, max_pairs: int = 200, overlap_voxel: float = 0.025) -> CheckReport:
+    """Run all checks; returns a report (``ok``, messages, and the worst measured deviations)."""
+    rep = CheckReport()
+    layout = Layout(root)
+    missing = check_layout(root)
+    if missing:
+        rep.failed.append(f"layout: {len(missing)} missing, first {missing[0]}")
+        return rep
+    rep.passed.append("layout complete")
+
+    records = []
+    for scene in layout.scenes("test"):
+        for b in BENCHMARKS:
+            d = layout.benchmark_dir(b, scene)
+            ov = read_gt_overlap(d / "gt_overlap.log")
+            info = read_gt_info(d / "gt.info")
+            for r in read_gt_log(d / "gt.log", scene):
+                records.append((b, r, ov.get((r.i, r.j)), info.get((r.i, r.j))))
+    for split in ("train", "val"):
+        for r in read_pairs(layout.pairs_file(split)):
+            records.append((split, r, r.overlap, None))
+    records = records[:max_pairs]
+    cache: dict[tuple[str, int], np.ndarray] = {}
+
+    def cloud(scene, i):
+        if (scene, i) not in cache:
+            cache[(scene, i)] = voxel_downsample(read_cloud(layout.fragment(scene, i))[0].astype(np.float64), overlap_voxel)
+        return cache[(scene, i)]
+
+    pose_err = ov_err = info_err = 0.0
+    n_pose = 0
+    for where, r, ov, info in records:
+        Pi, Pj = _first_pose(layout, r.scene, r.i), _first_pose(layout, r.scene, r.j)
+        if Pi is not None and Pj is not None:
+            pose_err = max(pose_err, float(np.abs(invert(Pi) @ Pj - r.transform).max()))
+            n_pose += 1
+        if ov is not None and np.isfinite(ov):
+            ov2 = overlap_ratio(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, OVERLAP_RADIUS)
+            ov_err = max(ov_err, abs(ov2 - ov))
+        if info is not None:
+            info2 = info_matrix(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, seed=r.i * 100003 + r.j)
+            info_err = max(info_err, float(np.abs(info2 - info).max() / max(1.0, np.abs(info).max())))
+    rep.measures.update(pose_max_abs=pose_err, overlap_max_abs=ov_err, info_max_rel=info_err)
+    _verdict(rep, n_pose and pose_err < 1e-6, f"pose/gt agreement over {n_pose} pairs (max |dT| {pose_err:.2e})")
+    _verdict(rep, ov_err < 0.02, f"overlaps recomputed over {len(records)} pairs (max |d| {ov_err:.4f})")
+    _verdict(rep, info_err < 1e-3, f"gt.info recomputed (max relative diff {info_err:.2e})")
+
+    # depth agreement on each test scene's first fragments
+    med = []
+    for scene in layout.scenes("test") + layout.scenes("train")[:1]:
+        K = read_intrinsics(layout.intrinsics(scene)) if layout.intrinsics(scene).is_file() else None
+        if K is None:
+            continue
+        for i in range(min(3, layout.n_fragments(scene))):
+            if not layout.fragment_info(scene, i).is_file():
+                continue
+            fi = read_fragment_info(layout.fragment_info(scene, i))
+            depth = read_depth(frame_paths(layout.frame_prefix(scene, fi.seq, fi.first_frame))[1])
+            pts = read_cloud(layout.fragment(scene, i))[0].astype(np.float64)
+            med.append(depth_agreement(pts, depth, K))
+    if med:
+        worst = float(np.nanmax(med))
+        rep.measures["depth_median_abs_max"] = worst
+        _verdict(rep, worst < 0.03, f"depth agreement over {len(med)} fragments (worst median |dz| {worst * 100:.2f} cm)")
+    return rep
+
+
+def depth_agreement(points: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
+    """Median |z - depth(u, v)| over the points (N, 3) that project onto valid depth pixels and are
+    not occluded (z within 10 cm of the depth); NaN when none do."""
+    uv, z = project(points, K)
+    H, W = depth.shape
+    u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+    m = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    d = depth[v[m], u[m]]
+    dz = np.abs(z[m] - d)[d > 0]
+    dz = dz[dz < 0.10]
+    return float(np.median(dz)) if len(dz) else float("nan")
+
+
+def _verdict(rep: CheckReport, ok, msg: str) -> None:
+    (rep.passed if ok else rep.failed).append(msg)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("root")
+    a = ap.parse_args(argv)
+    try:
+        rep = check_dataset(a.root)
+    except DataError as exc:
+        print(f"FAIL {exc}")
+        return 1
+    for m in rep.passed:
+        print(f"ok   {m}")
+    for m in rep.failed:
+        print(f"FAIL {m}")
+    return 0 if rep.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

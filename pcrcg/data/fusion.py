@@ -1,0 +1,74 @@
+"""TSDF fusion of RGB-D frames into a fragment, as 3DMatch made its fragments.
+
+Uses Open3D's tensor ``VoxelBlockGrid`` (sparse voxel blocks). Two traps measured on open3d-cpu
+0.20: the legacy ``ScalableTSDFVolume`` returns empty clouds here, and ``VoxelBlockGrid`` returns an
+empty cloud when fewer frames than its default ``weight_threshold`` (3.0) see a surface, so the
+threshold is explicit. ``UniformTSDFVolume`` also works but costs 70 ms a frame at 256^3.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from pcrcg.geometry import invert
+
+
+@dataclass
+class FusionConfig:
+    tsdf_voxel: float = 0.015  # metres
+    trunc_voxels: float = 4.0  # truncation distance in voxels
+    depth_max: float = 4.5  # metres; farther depth is ignored
+    min_weight: float = 1.0  # a voxel needs this many observations to become a point
+    fragment_voxel: float = 0.01  # the fused cloud is voxel-averaged to this size (0 = off)
+    block_count: int = 60000
+
+
+def fuse_frames(
+    colors: Sequence[np.ndarray],
+    depths: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    K: np.ndarray,
+    cfg: FusionConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse frames into a cloud in the camera frame of the first frame.
+
+    colors: (H, W, 3) uint8 each; depths: (H, W) float32 metres (0 = none); poses: (4, 4)
+    camera-to-world each; K: (3, 3). Returns points (N, 3) float32 and colors (N, 3) float32 in [0, 1].
+    """
+    if not (len(colors) == len(depths) == len(poses)) or len(poses) == 0:
+        raise ValueError("fuse_frames needs as many colors, depths and poses, at least one")
+    world_to_frag = invert(poses[0])
+    vbg = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"),
+        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+        attr_channels=((1), (1), (3)),
+        voxel_size=cfg.tsdf_voxel,
+        block_resolution=8,
+        block_count=cfg.block_count,
+    )
+    Kt = o3c.Tensor(np.asarray(K, dtype=np.float64))
+    for color, depth, pose in zip(colors, depths, poses):
+        if color.shape[:2] != depth.shape:
+            raise ValueError(f"color {color.shape[:2]} and depth {depth.shape} differ in size")
+        mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
+        d_img = o3d.t.geometry.Image(o3c.Tensor(mm))
+        c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, dtype=np.uint8)))
+        extrinsic = o3c.Tensor(invert(world_to_frag @ pose))  # fragment -> camera
+        blocks = vbg.compute_unique_block_coordinates(
+            d_img, Kt, extrinsic, 1000.0, cfg.depth_max, trunc_voxel_multiplier=cfg.trunc_voxels
+        )
+        vbg.integrate(blocks, d_img, c_img, Kt, extrinsic, 1000.0, cfg.depth_max, trunc_voxel_multiplier=cfg.trunc_voxels)
+    # weights count observations (+1 per frame); the threshold is strict, hence the 0.5
+    pcd = vbg.extract_point_cloud(weight_threshold=cfg.min_weight - 0.5)
+    if pcd.is_empty():
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    if cfg.fragment_voxel > 0:
+        pcd = pcd.voxel_down_sample(cfg.fragment_voxel)
+    pts = pcd.point.positions.numpy().astype(np.float32)
+    cols = np.clip(pcd.point.colors.numpy().astype(np.float32), 0, 1) if "colors" in pcd.point else np.zeros_like(pts)
+    return pts, cols

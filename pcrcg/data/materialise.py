@@ -1,0 +1,371 @@
+"""Materialise a data set into ``data.root``: generated (synthmatch), real frames (redkitchen) or
+the real 3DMatch release (threedmatch).
+
+Writes happen in ``<root>.tmp-<pid>`` which is renamed into place only when complete, with a
+``manifest.json`` holding the parameters' hash and the statistics; an interrupted run never leaves
+a data set that looks finished. A finished data set with the same parameters is reused; one with
+different parameters is replaced (only after the new one is complete).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import fields
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from pcrcg.data.build import SceneResult, build_scene, check_frames
+from pcrcg.data.fusion import FusionConfig
+from pcrcg.data.layout import (
+    BENCHMARKS,
+    Layout,
+    PairRecord,
+    read_cloud,
+    read_fragment_info,
+    read_gt_info,
+    read_gt_log,
+    read_gt_overlap,
+    write_gt_info,
+    write_gt_log,
+    write_gt_overlap,
+    write_pairs,
+    write_ply,
+    write_split,
+)
+from pcrcg.data.pairs import PairConfig
+from pcrcg.data.synth.render import SensorModel
+from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
+from pcrcg.errors import ConfigError, DataError
+
+GENERATOR_VERSION = 1
+SOURCES = ("synthmatch", "redkitchen", "threedmatch")
+
+
+def _dc(cls, cfg: Mapping[str, Any] | None, setting: str):
+    """Build dataclass ``cls`` from a mapping, naming the setting on unknown keys."""
+    cfg = dict(cfg or {})
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(cfg) - names)
+    if unknown:
+        raise ConfigError(f"{setting}.{unknown[0]}", cfg[unknown[0]], f"keys {sorted(names)}")
+    return cls(**cfg)
+
+
+def params_hash(params: Mapping[str, Any]) -> str:
+    blob = json.dumps(params, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def read_manifest(root: Path) -> dict | None:
+    try:
+        return json.loads((root / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = False, log: Callable[[str], None] = print) -> Path:
+    """Materialise the data set described by ``data_cfg`` (the ``data`` config node); returns its root."""
+    name = data_cfg.get("name")
+    if name not in SOURCES:
+        raise ConfigError("data.name", name, f"one of {SOURCES}")
+    root = Path(str(data_cfg["root"]))
+    params = {"source": name, "version": GENERATOR_VERSION, "seed": seed,
+              **{k: v for k, v in data_cfg.items() if k not in ("root", "workers")}}
+    h = params_hash(params)
+    man = read_manifest(root)
+    if man is not None and man.get("params_hash") == h and not force:
+        log(f"[prepare] {root} is up to date (params {h}); reusing it")
+        return root
+    if name == "synthmatch":
+        job = lambda tmp: _prepare_synthmatch(tmp, data_cfg, seed, log)  # noqa: E731
+    elif name == "redkitchen":
+        _check_redkitchen_source(data_cfg)
+        job = lambda tmp: _prepare_redkitchen(tmp, data_cfg, log)  # noqa: E731
+    else:
+        _check_threedmatch_source(data_cfg)
+        job = lambda tmp: _prepare_threedmatch(tmp, data_cfg, log)  # noqa: E731
+    _atomic_build(root, h, params, job, log)
+    return root
+
+
+def _atomic_build(root: Path, h: str, params: dict, job: Callable[[Path], dict], log) -> None:
+    root.parent.mkdir(parents=True, exist_ok=True)
+    for stale in root.parent.glob(root.name + ".tmp-*"):  # left by interrupted runs
+        if not _pid_alive(stale.name.rsplit("-", 1)[-1]):
+            shutil.rmtree(stale, ignore_errors=True)
+    tmp = root.parent / f"{root.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    t0 = time.time()
+    try:
+        stats = job(tmp)
+        stats["seconds"] = round(time.time() - t0, 2)
+        manifest = {"params_hash": h, "params": params, "stats": stats,
+                    "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2, default=str))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if root.exists() or root.is_symlink():
+        old = root.parent / f"{root.name}.old-{os.getpid()}"
+        os.replace(root, old)
+    os.replace(tmp, root)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    log(f"[prepare] wrote {root} in {stats['seconds']} s")
+
+
+def _pid_alive(pid: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def _stats(results: list[SceneResult], splits: dict[str, list[str]]) -> dict:
+    split_of = {s: k for k, v in splits.items() for s in v}
+    pairs_per_split = {k: 0 for k in ("train", "val")}
+    bench = {b: 0 for b in BENCHMARKS}
+    overlaps = []
+    pts = []
+    for r in results:
+        pts += r.points_per_fragment
+        overlaps += r.all_overlaps
+        sp = split_of.get(r.scene, "test")
+        if sp in pairs_per_split:
+            pairs_per_split[sp] += len(r.pairs)
+        for b, n in r.benchmark_counts.items():
+            bench[b] += n
+    hist, edges = np.histogram(overlaps, bins=[0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0001])
+    return {
+        "scenes": {k: len(v) for k, v in splits.items()},
+        "fragments": int(sum(r.n_fragments for r in results)),
+        "points_per_fragment": {"mean": float(np.mean(pts)) if pts else 0.0,
+                                "min": int(min(pts)) if pts else 0, "max": int(max(pts)) if pts else 0},
+        "pairs": {**pairs_per_split, **bench},
+        "overlap_histogram": {f"{edges[k]:.2f}-{min(edges[k + 1], 1.0):.2f}": int(hist[k]) for k in range(len(hist))},
+    }
+
+
+def _write_pairs_files(layout: Layout, results: list[SceneResult], splits: dict[str, list[str]]) -> None:
+    by_scene = {r.scene: r for r in results}
+    for split in ("train", "val", "test"):
+        write_split(layout.split_file(split), splits.get(split, []))
+    for split in ("train", "val"):
+        recs = [p for s in splits.get(split, []) for p in by_scene[s].pairs]
+        write_pairs(layout.pairs_file(split), recs)
+
+
+# --------------------------------------------------------------------------- synthmatch
+
+
+def _prepare_synthmatch(tmp: Path, data_cfg: Mapping[str, Any], seed: int, log) -> dict:
+    from tqdm import tqdm
+
+    synth = _dc(SynthConfig, data_cfg.get("synth"), "data.synth")
+    fusion = _dc(FusionConfig, data_cfg.get("fusion"), "data.fusion")
+    pair_cfg = _dc(PairConfig, data_cfg.get("pairs"), "data.pairs")
+    sensor = _dc(SensorModel, data_cfg.get("sensor"), "data.sensor")
+    for key in ("width", "height", "fragments_per_scene", "frames_per_fragment", "n_scenes"):
+        if getattr(synth, key) < 1:
+            raise ConfigError(f"data.synth.{key}", getattr(synth, key), "a positive integer")
+    if synth.fragments_per_scene < 2:
+        raise ConfigError("data.synth.fragments_per_scene", synth.fragments_per_scene, ">= 2 (pairs need two fragments)")
+    try:
+        splits = assign_splits(synth.n_scenes, synth.n_val, synth.n_test, seed)
+    except ValueError as exc:
+        raise ConfigError("data.synth.n_scenes", synth.n_scenes, str(exc)) from None
+    test = set(splits["test"])
+    workers = max(1, int(data_cfg.get("workers", 1) or 1))
+    log(f"[prepare] synthmatch: {synth.n_scenes} scenes x {synth.fragments_per_scene} fragments x "
+        f"{synth.frames_per_fragment} frames at {synth.width}x{synth.height}, {workers} worker(s) -> {tmp}")
+    args = [(str(tmp), k, seed, synth, sensor, fusion, pair_cfg, scene_name(k) in test) for k in range(synth.n_scenes)]
+    results: list[SceneResult] = []
+    bar = tqdm(total=len(args), desc="scenes", unit="scene")
+    if workers == 1:
+        for a in args:
+            results.append(generate_scene(*a))
+            bar.update()
+    else:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                                 initializer=set_parent, initargs=(os.getpid(),)) as pool:
+            for r in pool.map(_generate_scene_star, args):
+                results.append(r)
+                bar.update()
+    bar.close()
+    layout = Layout(tmp)
+    _write_pairs_files(layout, results, splits)
+    stats = _stats(results, splits)
+    n_frames = synth.n_scenes * synth.fragments_per_scene * synth.frames_per_fragment
+    stats["frames"] = n_frames
+    _require_benchmarks(stats, "data.synth")
+    return stats
+
+
+def _generate_scene_star(a):
+    return generate_scene(*a)
+
+
+def _require_benchmarks(stats: dict, setting: str) -> None:
+    missing = [b for b in BENCHMARKS if stats["pairs"][b] == 0]
+    if missing:
+        raise ConfigError(setting, "(profile sizes)", f"sizes that yield test pairs in both benchmarks; "
+                                                      f"none in {missing} (stats: {stats['pairs']})")
+
+
+# --------------------------------------------------------------------------- redkitchen (real frames)
+
+
+def _real_frame_ids(frames_dir: Path) -> list[int]:
+    ids = sorted(int(p.name[6:12]) for p in frames_dir.glob("frame-*.color.png"))
+    if not ids:
+        raise DataError(frames_dir, "no frame-XXXXXX.color.png files (3DMatch RGB-D layout expected)")
+    return ids
+
+
+def _check_redkitchen_source(data_cfg) -> None:
+    frames_dir = Path(str(data_cfg["frames_dir"]))
+    if not frames_dir.is_dir():
+        raise DataError(frames_dir, "frames folder (data.frames_dir) does not exist")
+    if not (frames_dir / "camera-intrinsics.txt").is_file():
+        raise DataError(frames_dir / "camera-intrinsics.txt", "intrinsics file is missing")
+    _real_frame_ids(frames_dir)
+
+
+def _prepare_redkitchen(tmp: Path, data_cfg, log) -> dict:
+    frames_dir = Path(str(data_cfg["frames_dir"]))
+    scene, seq = str(data_cfg["scene"]), str(data_cfg["seq"])
+    fusion = _dc(FusionConfig, data_cfg.get("fusion"), "data.fusion")
+    pair_cfg = _dc(PairConfig, data_cfg.get("pairs"), "data.pairs")
+    fpf = int(data_cfg["frames_per_fragment"])
+    ids = _real_frame_ids(frames_dir)
+    layout = Layout(tmp)
+    dst = layout.rgbd_dir(scene) / seq
+    dst.mkdir(parents=True)
+    shutil.copy2(frames_dir / "camera-intrinsics.txt", layout.intrinsics(scene))
+    for fid in ids:
+        for ext in (".color.png", ".depth.png", ".pose.txt"):
+            src = frames_dir / f"frame-{fid:06d}{ext}"
+            if not src.is_file():
+                raise DataError(src, "frame file is missing")
+            shutil.copy2(src, dst / src.name)
+    log(f"[prepare] redkitchen: checking {len(ids)} frames in {frames_dir}")
+    check_frames(layout, scene, seq, ids)
+    log(f"[prepare] redkitchen: fusing {len(ids)} frames, {fpf} per fragment")
+    res = build_scene(layout, scene, seq, ids, fpf, fusion, pair_cfg, is_test=True)
+    splits = {"train": [], "val": [], "test": [scene]}
+    _write_pairs_files(layout, [res], splits)
+    stats = _stats([res], splits)
+    stats["frames"] = len(ids)
+    return stats
+
+
+# --------------------------------------------------------------------------- threedmatch (real release)
+
+
+def _check_threedmatch_source(data_cfg) -> None:
+    src = data_cfg["source"]
+    bdir = Path(str(src["benchmarks_dir"]))
+    for b in BENCHMARKS:
+        if not (bdir / b).is_dir():
+            raise DataError(bdir / b, "benchmark folder (data.source.benchmarks_dir) is missing")
+    fdir = src.get("fragments_dir")
+    if fdir is None:
+        raise ConfigError("data.source.fragments_dir", None, "the folder of the release's fragments "
+                          "(<dir>/<scene>/cloud_bin_<i>.pth|.ply)")
+    fdir = Path(str(fdir))
+    if not fdir.is_dir():
+        raise DataError(fdir, "fragments folder (data.source.fragments_dir) does not exist")
+    missing = []
+    for b in BENCHMARKS:
+        for sd in sorted(p for p in (bdir / b).iterdir() if p.is_dir()):
+            for f in ("gt.log", "gt.info"):
+                if not (sd / f).is_file():
+                    raise DataError(sd / f, "benchmark file is missing")
+            for r in read_gt_log(sd / "gt.log", sd.name):
+                for i in (r.i, r.j):
+                    if _find_fragment(fdir, sd.name, i) is None:
+                        missing.append(f"{fdir / sd.name}/cloud_bin_{i}.(pth|ply)")
+    if missing:
+        raise DataError(missing[0], f"fragment is missing ({len(set(missing))} missing in all)")
+    rgbd = src.get("rgbd_dir")
+    if rgbd is not None and not Path(str(rgbd)).is_dir():
+        raise DataError(rgbd, "RGB-D folder (data.source.rgbd_dir) does not exist")
+
+
+def _find_fragment(fdir: Path, scene: str, i: int) -> Path | None:
+    for ext in (".ply", ".pth", ".npz"):
+        p = fdir / scene / f"cloud_bin_{i}{ext}"
+        if p.is_file():
+            return p
+    return None
+
+
+def _prepare_threedmatch(tmp: Path, data_cfg, log) -> dict:
+    """Convert the release to our layout: fragments to .ply, benchmark files copied, RGB-D linked."""
+    src = data_cfg["source"]
+    bdir, fdir = Path(str(src["benchmarks_dir"])), Path(str(src["fragments_dir"]))
+    rgbd = Path(str(src["rgbd_dir"])) if src.get("rgbd_dir") else None
+    layout = Layout(tmp)
+    scenes = sorted({p.name for b in BENCHMARKS for p in (bdir / b).iterdir() if p.is_dir()})
+    stats = {"scenes": {"train": 0, "val": 0, "test": len(scenes)}, "pairs": {}, "fragments": 0}
+    for b in BENCHMARKS:
+        n = 0
+        for scene in sorted(p.name for p in (bdir / b).iterdir() if p.is_dir()):
+            d = layout.benchmark_dir(b, scene)
+            d.mkdir(parents=True, exist_ok=True)
+            recs = read_gt_log(bdir / b / scene / "gt.log", scene)
+            infos = read_gt_info(bdir / b / scene / "gt.info")
+            ov_file = bdir / b / scene / "gt_overlap.log"
+            ov = read_gt_overlap(ov_file) if ov_file.is_file() else {}
+            recs = [PairRecord(scene, r.i, r.j, r.transform, ov.get((r.i, r.j), float("nan")), r.n_fragments) for r in recs]
+            write_gt_log(d / "gt.log", recs)
+            write_gt_info(d / "gt.info", recs, [infos[(r.i, r.j)] for r in recs])
+            write_gt_overlap(d / "gt_overlap.log", recs)
+            n += len(recs)
+        stats["pairs"][b] = n
+    from tqdm import tqdm
+
+    for scene in tqdm(scenes, desc="fragments", unit="scene"):
+        sdir = fdir / scene
+        layout.fragments_dir(scene).mkdir(parents=True, exist_ok=True)
+        for p in sorted(sdir.glob("cloud_bin_*")):
+            if p.name.endswith(".info.txt"):
+                read_fragment_info(p)  # validates
+                shutil.copy2(p, layout.fragments_dir(scene) / p.name)
+                continue
+            if p.suffix not in (".ply", ".pth", ".npz"):
+                continue
+            i = int(p.stem.split("_")[-1])
+            if p.suffix == ".ply":
+                shutil.copy2(p, layout.fragment(scene, i))
+            else:
+                pts, cols = read_cloud(p)
+                write_ply(layout.fragment(scene, i), pts, cols)
+            stats["fragments"] += 1
+        if rgbd is not None and (rgbd / scene).is_dir():
+            layout.rgbd_dir(scene).parent.mkdir(parents=True, exist_ok=True)
+            os.symlink((rgbd / scene).resolve(), layout.rgbd_dir(scene))
+    write_split(layout.split_file("test"), scenes)
+    write_split(layout.split_file("train"), [])
+    write_split(layout.split_file("val"), [])
+    write_pairs(layout.pairs_file("train"), [])
+    write_pairs(layout.pairs_file("val"), [])
+    log(f"[prepare] threedmatch: {len(scenes)} test scenes, pairs {stats['pairs']}")
+    return stats

@@ -1,0 +1,139 @@
+"""Procedural albedo textures evaluated on surface coordinates (metres), fully vectorised.
+
+A :class:`Texture` maps surface coordinates ``(u, v)`` (N,) to albedo (N, 3) in [0, 1].
+Families: ``plain``, ``noise`` (multi-octave value noise), ``stripes``, ``checks``, ``shapes``
+(random discs and squares on a jittered grid), ``gradient`` (triangle-wave ramp with grain).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FAMILIES = ("plain", "noise", "stripes", "checks", "shapes", "gradient")
+
+
+def _hash01(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
+    """Deterministic pseudo-random values in [0, 1) for integer lattice coordinates."""
+    h = (ix.astype(np.int64) * 73856093) ^ (iy.astype(np.int64) * 19349663) ^ (int(seed) * 83492791)
+    h = h.astype(np.uint64)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xFF51AFD7ED558CCD)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xC4CEB9FE1A85EC53)
+    h ^= h >> np.uint64(33)
+    return (h >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+def value_noise(u: np.ndarray, v: np.ndarray, scale: float, seed: int, octaves: int = 3) -> np.ndarray:
+    """Smooth value noise in [0, 1] with feature size ``scale`` metres."""
+    total = np.zeros_like(u, dtype=np.float64)
+    amp_sum = 0.0
+    amp = 1.0
+    for o in range(octaves):
+        x = u / scale * (2**o)
+        y = v / scale * (2**o)
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        fx = fx * fx * (3 - 2 * fx)
+        fy = fy * fy * (3 - 2 * fy)
+        s = seed * 31 + o
+        a = _hash01(x0, y0, s)
+        b = _hash01(x0 + 1, y0, s)
+        c = _hash01(x0, y0 + 1, s)
+        d = _hash01(x0 + 1, y0 + 1, s)
+        total += amp * ((a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy)
+        amp_sum += amp
+        amp *= 0.5
+    return total / amp_sum
+
+
+@dataclass
+class Texture:
+    family: str
+    colors: np.ndarray  # (3, 3) palette, rows in [0, 1]
+    scale: float = 0.2  # metres: period / cell size / noise feature size
+    angle: float = 0.0  # radians, orientation of stripes / gradients / checks
+    seed: int = 0
+    grain: float = 0.04  # amplitude of fine noise added to every family
+    params: dict = field(default_factory=dict)
+
+    def __call__(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Albedo (N, 3) in [0, 1] at surface coordinates u, v (N,)."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        ca, sa = np.cos(self.angle), np.sin(self.angle)
+        ru, rv = ca * u + sa * v, -sa * u + ca * v
+        c0, c1, c2 = self.colors
+        fam = self.family
+        if fam == "plain":
+            out = np.broadcast_to(c0, (u.size, 3)).copy()
+        elif fam == "noise":
+            n = value_noise(u, v, self.scale, self.seed, octaves=4)
+            t = np.clip((n - 0.5) * 2.2 + 0.5, 0, 1)[:, None]
+            out = c0 * (1 - t) + c1 * t
+        elif fam == "stripes":
+            duty = self.params.get("duty", 0.5)
+            phase = (ru / self.scale) % 1.0
+            out = np.where((phase < duty)[:, None], c0, c1)
+            # a thin third-colour pin stripe makes the pattern non-periodic-looking
+            out = np.where((np.abs(phase - duty) < 0.06)[:, None], c2, out)
+        elif fam == "checks":
+            k = (np.floor(ru / self.scale) + np.floor(rv / self.scale)).astype(np.int64) % 2
+            out = np.where((k == 0)[:, None], c0, c1)
+        elif fam == "shapes":
+            cu, cv = np.floor(ru / self.scale), np.floor(rv / self.scale)
+            fu, fv = ru / self.scale - cu, rv / self.scale - cv
+            r = 0.18 + 0.25 * _hash01(cu, cv, self.seed + 1)
+            ou = 0.5 + (_hash01(cu, cv, self.seed + 2) - 0.5) * (1 - 2 * r)
+            ov = 0.5 + (_hash01(cu, cv, self.seed + 3) - 0.5) * (1 - 2 * r)
+            kind = _hash01(cu, cv, self.seed + 4)
+            du, dv = fu - ou, fv - ov
+            inside = np.where(kind < 0.5, du * du + dv * dv < r * r, np.maximum(np.abs(du), np.abs(dv)) < r)
+            inside &= _hash01(cu, cv, self.seed + 5) < 0.85
+            pick = _hash01(cu, cv, self.seed + 6) < 0.5
+            shape_col = np.where(pick[:, None], c1, c2)
+            out = np.where(inside[:, None], shape_col, c0)
+        elif fam == "gradient":
+            t = np.abs(((ru / self.scale) % 2.0) - 1.0)[:, None]
+            out = c0 * (1 - t) + c1 * t
+        else:
+            raise ValueError(f"unknown texture family {fam!r}; allowed {FAMILIES}")
+        if self.grain > 0:  # per-centimetre-cell grain (no interpolation: cheap)
+            g = _hash01(np.floor(u * 100.0), np.floor(v * 100.0), self.seed + 97) - 0.5
+            out = out * (1.0 + self.grain * 2 * g[:, None])
+        return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def random_palette(rng: np.random.Generator, contrast: float) -> np.ndarray:
+    """Three colours; ``contrast`` in [0, 1] sets how far apart they are."""
+    base = rng.uniform(0.25, 0.85, size=3)
+    cols = [base]
+    for _ in range(2):
+        delta = rng.normal(size=3)
+        delta = delta / (np.linalg.norm(delta) + 1e-9) * contrast * rng.uniform(0.5, 0.9)
+        cols.append(np.clip(base + delta, 0.03, 0.97))
+    return np.stack(cols)
+
+
+def random_texture(rng: np.random.Generator, kind: str) -> Texture:
+    """A texture typical of a surface kind: ``wall``, ``floor``, ``ceiling``, ``furniture``, ``poster``, ``rug``."""
+    seed = int(rng.integers(0, 2**31 - 1))
+    angle = float(rng.uniform(0, np.pi))
+    if kind in ("wall", "ceiling"):
+        fam = rng.choice(["plain", "noise", "gradient"], p=[0.5, 0.3, 0.2])
+        return Texture(str(fam), random_palette(rng, 0.12), float(rng.uniform(0.5, 2.0)), angle, seed, 0.03)
+    if kind == "floor":
+        fam = rng.choice(["stripes", "checks", "noise"], p=[0.4, 0.3, 0.3])
+        return Texture(str(fam), random_palette(rng, 0.3), float(rng.uniform(0.12, 0.5)), angle, seed, 0.06,
+                       {"duty": float(rng.uniform(0.3, 0.7))})
+    if kind == "furniture":
+        fam = rng.choice(["plain", "noise", "stripes"], p=[0.4, 0.4, 0.2])
+        return Texture(str(fam), random_palette(rng, 0.35), float(rng.uniform(0.05, 0.3)), angle, seed, 0.05)
+    if kind in ("poster", "rug"):
+        fam = rng.choice(["noise", "stripes", "checks", "shapes", "gradient"])
+        scale = float(rng.uniform(0.04, 0.2))
+        return Texture(str(fam), random_palette(rng, 0.9), scale, angle, seed, 0.05,
+                       {"duty": float(rng.uniform(0.3, 0.7))})
+    raise ValueError(f"unknown surface kind {kind!r}")

@@ -1,0 +1,116 @@
+"""SynthMatch: the generated RGB-D registration benchmark in the 3DMatch layout.
+
+Per scene: a random furnished room (:mod:`pcrcg.data.synth.scene`), a hand-held camera path
+(:mod:`pcrcg.data.synth.camera`), frames ray-cast with a Kinect-like sensor model
+(:mod:`pcrcg.data.synth.render`) and written as PNGs in the 3DMatch RGB-D layout; then the same
+fusion and pairing code as real data (:mod:`pcrcg.data.build`). Scenes are independent and seeded
+by ``(seed, scene index)``, so they are generated in parallel and the output does not depend on
+the number of workers.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from pcrcg.data.build import SceneResult, build_scene
+from pcrcg.data.fusion import FusionConfig
+from pcrcg.data.layout import Layout, write_color, write_depth, write_matrix
+from pcrcg.data.pairs import PairConfig
+from pcrcg.data.synth.camera import _smooth, camera_path
+from pcrcg.data.synth.render import RoomRenderer, SensorModel
+from pcrcg.data.synth.scene import make_room
+from pcrcg.geometry import scale_intrinsics
+
+K_640 = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])  # 7-Scenes / 3DMatch
+SEQ = "seq-01"
+
+
+@dataclass
+class SynthConfig:
+    n_scenes: int = 4
+    n_val: int = 1
+    n_test: int = 1
+    width: int = 160
+    height: int = 120
+    fragments_per_scene: int = 8
+    frames_per_fragment: int = 5
+    yaw_per_fragment_deg: float = 70.0
+    shadows: bool = True
+
+
+_PARENT_PID: int | None = None
+
+
+def set_parent(pid: int) -> None:
+    """Pool initializer: workers stop when the process that started them is gone (killed run)."""
+    global _PARENT_PID
+    _PARENT_PID = pid
+
+
+def _orphaned() -> bool:
+    return _PARENT_PID is not None and os.getppid() != _PARENT_PID
+
+
+def scene_name(index: int) -> str:
+    return f"synth-{index:03d}"
+
+
+def assign_splits(n_scenes: int, n_val: int, n_test: int, seed: int) -> dict[str, list[str]]:
+    """Scenes split by a seeded shuffle: test first, then val, the rest train."""
+    if n_val + n_test >= n_scenes:
+        raise ValueError(f"n_scenes={n_scenes} leaves no training scene after n_val={n_val}, n_test={n_test}")
+    order = np.random.default_rng([seed, 7919]).permutation(n_scenes)
+    names = [scene_name(int(k)) for k in order]
+    return {
+        "test": sorted(names[:n_test]),
+        "val": sorted(names[n_test : n_test + n_val]),
+        "train": sorted(names[n_test + n_val :]),
+    }
+
+
+def intrinsics_for(width: int, height: int) -> np.ndarray:
+    return scale_intrinsics(K_640, width / 640.0, height / 480.0)
+
+
+def render_scene(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel) -> list[int]:
+    """Render one scene's frames into ``<root>/rgbd/<scene>/seq-01``; returns the frame ids."""
+    rng = np.random.default_rng([seed, index])
+    scene = scene_name(index)
+    room = make_room(rng)
+    n_frames = cfg.fragments_per_scene * cfg.frames_per_fragment
+    poses = camera_path(room, n_frames, cfg.yaw_per_fragment_deg / cfg.frames_per_fragment, rng)
+    K = intrinsics_for(cfg.width, cfg.height)
+    renderer = RoomRenderer(room, sensor)
+    t = np.arange(n_frames, dtype=np.float64)
+    period = max(4.0, 2.0 * cfg.frames_per_fragment)
+    exposure = np.exp(0.18 * _smooth(rng, t, period * 3) + rng.normal(0, 0.1))
+    flicker = 1.0 + 0.06 * np.stack([_smooth(rng, t, period) for _ in range(len(room.lights))], 1)
+    seq_dir = layout.rgbd_dir(scene) / SEQ
+    seq_dir.mkdir(parents=True, exist_ok=True)
+    write_matrix(layout.intrinsics(scene), K)
+    for k in range(n_frames):
+        if _orphaned():
+            raise SystemExit(f"parent process gone; stopping {scene}")
+        color, depth, _ = renderer.render(poses[k], K, cfg.width, cfg.height, rng, float(exposure[k]),
+                                          flicker[k], shadows=cfg.shadows)
+        prefix = layout.frame_prefix(scene, SEQ, k)
+        write_color(str(prefix) + ".color.png", color)
+        write_depth(str(prefix) + ".depth.png", depth)
+        write_matrix(str(prefix) + ".pose.txt", poses[k])
+    return list(range(n_frames))
+
+
+def generate_scene(
+    root: str, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel, fusion: FusionConfig,
+    pair_cfg: PairConfig, is_test: bool,
+) -> SceneResult:
+    """Render, fuse and pair one scene (a process-pool task)."""
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    layout = Layout(root)
+    frame_ids = render_scene(layout, index, seed, cfg, sensor)
+    return build_scene(layout, scene_name(index), SEQ, frame_ids, cfg.frames_per_fragment, fusion, pair_cfg, is_test)

@@ -1,0 +1,164 @@
+"""`python -m pcrcg.evaluate mode=score|pair|benchmark ...` (config: conf/evaluate.yaml).
+
+* ``mode=score benchmark_dir=DIR estimate_dir=DIR``: score ``<estimate_dir>/<scene>/est.log``
+  against ``<benchmark_dir>/<scene>/gt.log|gt.info`` (a missing estimate is a failure).
+* ``mode=pair method=fpfh|icp|color_icp|sift_dlt source=FILE target=FILE``: register one pair.
+* ``mode=benchmark method=... data.root=DIR``: a classical method over the test benchmarks of a
+  data set in the 3DMatch layout; writes ``<out_dir>/<benchmark>/<scene>/est.log`` and
+  ``<out_dir>/metrics.json``.
+
+The last line of standard output is one JSON object. Every input is checked before work starts;
+a bad file is an error that names it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pcrcg.errors import ConfigError, DataError
+
+MODES = ("score", "pair", "benchmark")
+
+
+def _need(cfg: DictConfig, key: str, what: str) -> str:
+    v = OmegaConf.select(cfg, key)
+    if v is None or str(v) == "":
+        raise ConfigError(key, v, what)
+    return str(v)
+
+
+def _existing(path: str, what: str, folder: bool = False) -> Path:
+    p = Path(path)
+    ok = p.is_dir() if folder else p.is_file()
+    if not ok:
+        raise DataError(p, f"{what} does not exist")
+    return p
+
+
+def run_score(cfg: DictConfig) -> dict[str, Any]:
+    from pcrcg.evaluation.metrics import score_directories
+
+    bdir = _existing(_need(cfg, "benchmark_dir", "a folder of <scene>/gt.log|gt.info"), "benchmark folder", True)
+    edir = _existing(_need(cfg, "estimate_dir", "a folder of <scene>/est.log"), "estimate folder", True)
+    score = score_directories(bdir, edir, bool(cfg.predator_variant), float(cfg.eval.rmse_threshold))
+    return {**score.to_dict(), "benchmark_dir": str(bdir), "estimate_dir": str(edir)}
+
+
+def _load_views(prefixes: list[str], intrinsics: str | None) -> list:
+    from pcrcg.data.dataset import View
+    from pcrcg.data.layout import frame_paths, read_color, read_depth, read_intrinsics, read_pose
+    from pcrcg.geometry import invert
+
+    if not prefixes:
+        return []
+    K = read_intrinsics(_existing(intrinsics, "intrinsics file")) if intrinsics else None
+    if K is None:
+        raise ConfigError("intrinsics", intrinsics, "camera-intrinsics.txt of the views (sift_dlt)")
+    paths = [frame_paths(Path(p)) for p in prefixes]
+    for c, d, po in paths:  # check everything before reading
+        for f in (c, d, po):
+            _existing(str(f), "frame file")
+    first = read_pose(paths[0][2])
+    to_frag = invert(first)
+    views = []
+    for (c, d, po), prefix in zip(paths, prefixes):
+        color, depth = read_color(c), read_depth(d)
+        if color.shape[:2] != depth.shape:
+            raise DataError(d, f"depth is {depth.shape[1]}x{depth.shape[0]} but color is {color.shape[1]}x{color.shape[0]}")
+        views.append(View(color, depth, K.copy(), to_frag @ read_pose(po), -1, str(c)))
+    return views
+
+
+def run_pair(cfg: DictConfig) -> dict[str, Any]:
+    from pcrcg.data.layout import check_rigid, read_cloud, read_matrix
+    from pcrcg.evaluation.run import configs_from
+    from pcrcg.registration.baselines import METHODS, register_pair
+
+    method = str(cfg.method)
+    if method not in METHODS:
+        raise ConfigError("method", method, " | ".join(METHODS))
+    src = tgt = src_col = tgt_col = None
+    src_views = tgt_views = []
+    if method == "sift_dlt":
+        src_views = _load_views(list(cfg.source_views or []), cfg.intrinsics)
+        tgt_views = _load_views(list(cfg.target_views or []), cfg.intrinsics)
+        if not src_views or not tgt_views:
+            raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
+                              "frame prefixes .../frame-XXXXXX of both fragments (sift_dlt uses images)")
+    else:
+        sp = _existing(_need(cfg, "source", "a point cloud file (.ply, .pcd, .npz, .pth)"), "source cloud")
+        tp = _existing(_need(cfg, "target", "a point cloud file (.ply, .pcd, .npz, .pth)"), "target cloud")
+        src, src_col = read_cloud(sp)
+        tgt, tgt_col = read_cloud(tp)
+        if method == "color_icp":
+            for path, col in ((sp, src_col), (tp, tgt_col)):
+                if col is None:
+                    raise DataError(path, "has no colors (method=color_icp needs them)")
+    init = None
+    if cfg.init is not None:
+        ip = _existing(str(cfg.init), "initial transform file")
+        init = check_rigid(read_matrix(ip, (4, 4)), ip)
+    _, bcfg = configs_from(cfg)
+    t0 = time.perf_counter()
+    res = register_pair(method, src, tgt, src_colors=src_col, tgt_colors=tgt_col, src_views=src_views,
+                        tgt_views=tgt_views, init=init, cfg=bcfg, seed=int(cfg.seed))
+    return {
+        "method": method,
+        "source": None if cfg.source is None else str(cfg.source),
+        "target": None if cfg.target is None else str(cfg.target),
+        "fitness": _num(res.fitness),
+        "inlier_rmse": _num(res.inlier_rmse),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "transform": np.asarray(res.transform, dtype=float).round(10).tolist(),
+    }
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def run_benchmark(cfg: DictConfig) -> dict[str, Any]:
+    from pcrcg.evaluation.run import configs_from, run_benchmark_mode
+
+    root = OmegaConf.select(cfg, "data.root")
+    if root is None:
+        raise ConfigError("data.root", None, "a data set folder in the 3DMatch layout (data.root=DIR or data=<name>)")
+    rcfg, bcfg = configs_from(cfg)
+    summary = run_benchmark_mode(
+        str(cfg.method), str(root), str(cfg.out_dir), list(cfg.benchmarks), rcfg=rcfg, bcfg=bcfg,
+        init_dir=cfg.init_dir, n_views=int(cfg.views), seed=int(cfg.seed),
+        max_pairs=None if cfg.max_pairs is None else int(cfg.max_pairs),
+        thresholds=OmegaConf.to_container(cfg.eval, resolve=True), predator_variant=bool(cfg.predator_variant),
+    )
+    short = {b: {k: v[k] for k in ("rr", "rr_pair", "rre", "rte", "n_counted", "n_success") if k in v}
+             for b, v in summary["benchmarks"].items()}
+    return {"method": summary["method"], "out_dir": str(cfg.out_dir), "metrics": str(Path(str(cfg.out_dir)) / "metrics.json"),
+            "benchmarks": short}
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Dispatch on ``cfg.mode``; returns the JSON-ready result."""
+    mode = str(cfg.mode)
+    if mode == "score":
+        return run_score(cfg)
+    if mode == "pair":
+        return run_pair(cfg)
+    if mode == "benchmark":
+        return run_benchmark(cfg)
+    raise ConfigError("mode", mode, " | ".join(MODES))
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    print(json.dumps(run(cfg)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,127 @@
+"""Evaluating a learned model's per-point outputs with Predator's protocol at every N."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+from tqdm import tqdm
+
+from pcrcg.evaluation.metrics import (
+    FMR_THRESHOLD,
+    INLIER_DISTANCE,
+    RMSE_THRESHOLD,
+    SceneGT,
+    correspondence_metrics,
+    inlier_ratio,
+    load_benchmark,
+    score_benchmark,
+    write_estimates,
+)
+from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig, pair_seed, register_features
+
+log = logging.getLogger(__name__)
+
+
+def as_fragment(x: Any) -> FragmentOutput:
+    """Any object with ``points``, ``descriptors``, ``overlap``, ``matchability`` (e.g. the model
+    stage's own ``FragmentOutput``) as the registration stage's :class:`FragmentOutput`."""
+    if isinstance(x, FragmentOutput):
+        return x
+    if isinstance(x, Mapping):
+        return FragmentOutput(x["points"], x["descriptors"], x["overlap"], x["matchability"])
+    return FragmentOutput(x.points, x.descriptors, x.overlap, x.matchability)
+
+
+def subset(gt: Mapping[str, SceneGT], keys: Mapping[str, set[tuple[int, int]]]) -> dict[str, SceneGT]:
+    """The ground truth restricted to the given pairs per scene (scenes without pairs dropped)."""
+    out = {}
+    for s, g in gt.items():
+        ks = keys.get(s, set())
+        sel = [k for k, p in enumerate(g.pairs) if (p.i, p.j) in ks]
+        if sel:
+            out[s] = SceneGT(s, tuple(g.pairs[k] for k in sel), g.transforms[sel], g.infos[sel])
+    return out
+
+
+def evaluate_model_outputs(
+    outputs: Iterable[Any],
+    benchmark: str | os.PathLike | Mapping[str, SceneGT],
+    *,
+    cfg: RegistrationConfig | None = None,
+    est_dir: str | os.PathLike | None = None,
+    seed: int = 0,
+    predator_variant: bool = False,
+    inlier_distance: float = INLIER_DISTANCE,
+    fmr_threshold: float = FMR_THRESHOLD,
+    rmse_threshold: float = RMSE_THRESHOLD,
+    only_evaluated: bool = False,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Register every pair at every N of ``cfg.n_points`` and score it (see the package docstring)."""
+    cfg = cfg or RegistrationConfig()
+    gt = benchmark if isinstance(benchmark, Mapping) else load_benchmark(benchmark)
+    lookup = {(s, p.i, p.j): (g, k) for s, g in gt.items() for k, p in enumerate(g.pairs)}
+    ns = list(cfg.n_points)
+    est: dict[int, dict[str, dict[tuple[int, int], np.ndarray]]] = {n: defaultdict(dict) for n in ns}
+    irs: dict[int, dict[str, list[float]]] = {n: defaultdict(list) for n in ns}
+    seconds = {n: 0.0 for n in ns}
+    seen: dict[str, set[tuple[int, int]]] = defaultdict(set)
+    coverage: list[float] = []
+    n_done = 0
+    for out in tqdm(outputs, desc="registration", unit="pair", disable=not progress):
+        scene, i, j = str(out.scene), int(out.i), int(out.j)
+        if (scene, i, j) not in lookup:
+            raise KeyError(f"pair {scene} {i} {j} is not in the benchmark's gt.log")
+        if (i, j) in seen[scene]:
+            raise KeyError(f"pair {scene} {i} {j} was given twice")
+        seen[scene].add((i, j))
+        g, k = lookup[(scene, i, j)]
+        T_gt = g.transforms[k]
+        src, tgt = as_fragment(out.src), as_fragment(out.tgt)
+        cov = getattr(out, "color_coverage", float("nan"))
+        if cov is not None and np.isfinite(cov):
+            coverage.append(float(cov))
+        for n in ns:
+            t0 = time.perf_counter()
+            reg = register_features(src, tgt, n, cfg, seed=pair_seed(seed, scene, i, j, n))
+            seconds[n] += time.perf_counter() - t0
+            est[n][scene][(i, j)] = reg.transform
+            c = reg.correspondences
+            irs[n][scene].append(
+                inlier_ratio(src.points[c[:, 0]], tgt.points[c[:, 1]], T_gt, inlier_distance) if len(c) else 0.0
+            )
+        n_done += 1
+
+    scored = subset(gt, seen) if only_evaluated else dict(gt)
+    metrics: dict[str, float] = {}
+    for n in ns:
+        score = score_benchmark(scored, est[n], predator_variant, threshold=rmse_threshold)
+        cm = correspondence_metrics({s: irs[n].get(s, []) for s in scored}, fmr_threshold)
+        metrics.update({
+            f"rr_{n}": score.rr,
+            f"rr_pair_{n}": score.rr_pair,
+            f"fmr_{n}": cm["fmr"],
+            f"fmr_pair_{n}": cm["fmr_pair"],
+            f"ir_{n}": cm["ir"],
+            f"rre_{n}": score.rre,
+            f"rte_{n}": score.rte,
+            f"seconds_per_pair_{n}": seconds[n] / max(n_done, 1),
+        })
+        if est_dir is not None:
+            for s, g in gt.items():
+                write_estimates(Path(est_dir) / str(n) / s / "est.log", g, est[n].get(s, {}))
+    top = max(ns)
+    metrics["rre"] = metrics[f"rre_{top}"]
+    metrics["rte"] = metrics[f"rte_{top}"]
+    metrics["n_pairs"] = float(sum(len(g.pairs) for g in scored.values()))
+    metrics["n_counted"] = float(score.n_counted)
+    metrics["n_evaluated"] = float(n_done)
+    if coverage:
+        metrics["color_coverage"] = float(np.mean(coverage))
+    return metrics

@@ -1,0 +1,388 @@
+"""Running a method over the test benchmarks of a data set in the 3DMatch layout.
+
+* :func:`run_classical` registers every pair of one benchmark with ``fpfh | icp | color_icp |
+  sift_dlt``, writes ``<out_dir>/<scene>/est.log`` and scores it;
+* :func:`evaluate` is the pipeline's evaluation stage (``stages.evaluate`` of ``conf/run.yaml``
+  calls it through ``pcrcg.pipeline.evaluate_method``): the learned model at every N, or a
+  classical method (ICP / colored ICP optionally started from the learned model's estimates), on
+  every benchmark of ``eval.benchmarks``; metrics named ``<benchmark>/<metric>[_<N>]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import numpy as np
+from tqdm import tqdm
+
+from pcrcg.data.layout import BENCHMARKS, Layout
+from pcrcg.errors import ConfigError, DataError
+from pcrcg.evaluation.metrics import (
+    FMR_THRESHOLD,
+    INLIER_DISTANCE,
+    RMSE_THRESHOLD,
+    SceneGT,
+    correspondence_metrics,
+    inlier_ratio,
+    load_benchmark,
+    load_estimates,
+    score_benchmark,
+    write_estimates,
+)
+from pcrcg.evaluation.model import evaluate_model_outputs, subset
+from pcrcg.registration.baselines import METHODS as CLASSICAL, BaselineConfig, register_pair
+from pcrcg.registration.pipeline import RegistrationConfig
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- configs
+
+
+def _plain(node: Any) -> Any:
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(node, (DictConfig, ListConfig)):
+            return OmegaConf.to_container(node, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return node
+
+
+def _select(cfg: Any, dotted: str, default: Any = None) -> Any:
+    cur = cfg
+    for part in dotted.split("."):
+        if cur is None:
+            return default
+        try:
+            cur = cur.get(part) if hasattr(cur, "get") else getattr(cur, part, None)
+        except Exception:  # noqa: BLE001 - missing/interpolation errors mean "not set"
+            return default
+    return default if cur is None else cur
+
+
+def configs_from(cfg: Any, device: str | None = None) -> tuple[RegistrationConfig, BaselineConfig]:
+    """Registration and baseline settings from a composed config.
+
+    Reads the ``registration`` node when present (``conf/registration/default.yaml``); the
+    ``eval`` node of ``conf/run.yaml`` (``n_points``, ``ransac_iterations``, ``ransac_distance``)
+    overrides it.
+    """
+    reg = dict(_plain(_select(cfg, "registration", {})) or {})
+    ev = dict(_plain(_select(cfg, "eval", {})) or {})
+    ransac = dict(reg.get("ransac") or {})
+    if ev.get("ransac_iterations") is not None:
+        ransac["max_iterations"] = int(ev["ransac_iterations"])
+    if ev.get("ransac_distance") is not None:
+        ransac["distance"] = float(ev["ransac_distance"])
+    reg["ransac"] = ransac
+    if ev.get("n_points"):
+        reg["n_points"] = list(ev["n_points"])
+    if device is not None and str(device) != "auto":
+        reg["device"] = str(device)
+    if str(reg.get("device", "cpu")) == "auto":
+        import torch
+
+        reg["device"] = "cuda" if torch.cuda.is_available() else "cpu"
+    rcfg = RegistrationConfig.from_dict(reg)
+    bcfg = BaselineConfig.from_dict({**reg, "ransac": dataclasses.asdict(rcfg.ransac), "device": rcfg.device})
+    return rcfg, bcfg
+
+
+def thresholds_from(cfg: Any) -> dict[str, float]:
+    ev = _select(cfg, "eval", {}) or {}
+    return {
+        "inlier_distance": float(_select(ev, "inlier_distance", INLIER_DISTANCE)),
+        "fmr_threshold": float(_select(ev, "fmr_threshold", FMR_THRESHOLD)),
+        "rmse_threshold": float(_select(ev, "rmse_threshold", RMSE_THRESHOLD)),
+    }
+
+
+# --------------------------------------------------------------------------- classical methods
+
+
+def check_layout(root: str | os.PathLike, benchmarks: Iterable[str]) -> dict[str, dict[str, SceneGT]]:
+    """Check the benchmark files and fragment folders of a data set before work starts."""
+    layout = Layout(root)
+    if not layout.root.is_dir():
+        raise DataError(layout.root, "data root does not exist (run `python -m pcrcg.prepare` or set data.root)")
+    out = {}
+    for b in benchmarks:
+        if b not in BENCHMARKS:
+            raise ConfigError("benchmarks", b, " | ".join(BENCHMARKS))
+        gt = load_benchmark(layout.benchmark_dir(b))
+        for s, g in gt.items():
+            for p in g.pairs:
+                for f in (p.i, p.j):
+                    path = layout.fragment(s, f)
+                    if not path.is_file():
+                        raise DataError(path, f"fragment of pair {p.i} {p.j} of {b}/{s} is missing")
+        out[b] = gt
+    return out
+
+
+def run_classical(
+    method: str,
+    root: str | os.PathLike,
+    benchmark: str,
+    *,
+    cfg: BaselineConfig | None = None,
+    out_dir: str | os.PathLike | None = None,
+    init: Mapping[str, Mapping[tuple[int, int], np.ndarray]] | None = None,
+    n_views: int = 2,
+    seed: int = 0,
+    max_pairs: int | None = None,
+    gt: Mapping[str, SceneGT] | None = None,
+    thresholds: Mapping[str, float] | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Register every pair of ``benchmark`` with a classical method and score it.
+
+    ``init`` ({scene: {(i, j): 4x4}}) starts ICP / colored ICP from given estimates (identity
+    where a pair has none). Returns ``{"score": BenchmarkScore, "metrics": {...}, "estimates":
+    {scene: {(i, j): 4x4}}, "seconds_per_pair": float}``; ``out_dir/<scene>/est.log`` when given.
+    """
+    from pcrcg.data.dataset import PairDataset
+
+    if method not in CLASSICAL:
+        raise ConfigError("method", method, " | ".join(CLASSICAL))
+    cfg = cfg or BaselineConfig()
+    th = {**thresholds_from({}), **dict(thresholds or {})}
+    layout = Layout(root)
+    gt = gt if gt is not None else load_benchmark(layout.benchmark_dir(benchmark))
+    ds = PairDataset(root, benchmark, n_views=n_views if method == "sift_dlt" else 0)
+    keys = [(p.scene, p.i, p.j) for p in ds.pairs if p.scene in gt]
+    if max_pairs is not None:
+        keys = keys[: int(max_pairs)]
+    index = {(p.scene, p.i, p.j): k for k, p in enumerate(ds.pairs)}
+    estimates: dict[str, dict[tuple[int, int], np.ndarray]] = defaultdict(dict)
+    irs: dict[str, list[float]] = defaultdict(list)
+    n_no_init = 0
+    t0 = time.perf_counter()
+    for scene, i, j in tqdm(keys, desc=f"{method} {benchmark}", unit="pair", disable=not progress):
+        sample = ds[index[(scene, i, j)]]
+        T0 = None
+        if init is not None and method in ("icp", "color_icp"):
+            T0 = init.get(scene, {}).get((i, j))
+            n_no_init += T0 is None
+        res = register_pair(
+            method, sample.src_points, sample.tgt_points,
+            src_colors=sample.src_colors, tgt_colors=sample.tgt_colors,
+            src_views=sample.src_views, tgt_views=sample.tgt_views, init=T0, cfg=cfg, seed=seed,
+        )
+        estimates[scene][(i, j)] = res.transform
+        if res.src_corr is not None:
+            irs[scene].append(inlier_ratio(res.src_corr, res.tgt_corr, sample.transform, th["inlier_distance"])
+                              if len(res.src_corr) else 0.0)
+    seconds = (time.perf_counter() - t0) / max(len(keys), 1)
+    if n_no_init:
+        log.warning("%d pairs had no initial estimate and started from the identity", n_no_init)
+    evaluated: dict[str, set] = defaultdict(set)
+    for s, i, j in keys:
+        evaluated[s].add((i, j))
+    scored = subset(gt, evaluated) if max_pairs is not None else dict(gt)
+    score = score_benchmark(scored, estimates, threshold=th["rmse_threshold"])
+    metrics = {"rr": score.rr, "rr_pair": score.rr_pair, "rre": score.rre, "rte": score.rte,
+               "seconds_per_pair": seconds}
+    if irs:
+        cm = correspondence_metrics({s: irs.get(s, []) for s in scored}, th["fmr_threshold"])
+        metrics.update({"fmr": cm["fmr"], "ir": cm["ir"], "fmr_pair": cm["fmr_pair"]})
+    if out_dir is not None:
+        for s, g in gt.items():
+            write_estimates(Path(out_dir) / s / "est.log", g, estimates.get(s, {}))
+    return {"score": score, "metrics": metrics, "estimates": dict(estimates), "seconds_per_pair": seconds}
+
+
+# --------------------------------------------------------------------------- learned model
+
+
+def predict_outputs(cfg: Any, data_root: str | os.PathLike, checkpoint: str | os.PathLike, benchmark: str,
+                    device: str = "cpu", max_pairs: int | None = None) -> Iterable[Any]:
+    """Per-pair network outputs (objects with ``scene, i, j, src, tgt[, color_coverage]``).
+
+    Uses ``pcrcg.models.predict.predict_benchmark(cfg, data_root, checkpoint, benchmark, device)``
+    when the model stage provides it; otherwise loads the Lightning checkpoint and runs
+    ``PCRCGModule.predict_pair`` over ``PairDataModule.benchmark_dataloader(benchmark)``.
+    """
+    if checkpoint is None or not Path(checkpoint).is_file():
+        raise DataError(checkpoint, "checkpoint of the learned model is missing (method=learned needs one)")
+    try:
+        from pcrcg.models.predict import predict_benchmark  # type: ignore[import-not-found]
+    except ImportError:
+        predict_benchmark = None
+    if predict_benchmark is not None:
+        it = predict_benchmark(cfg, data_root=data_root, checkpoint=checkpoint, benchmark=benchmark, device=device)
+    else:
+        it = _predict_with_lightning(cfg, data_root, checkpoint, benchmark, device)
+    for k, out in enumerate(it):
+        if max_pairs is not None and k >= max_pairs:
+            break
+        yield out
+
+
+def _predict_with_lightning(cfg: Any, data_root, checkpoint, benchmark: str, device: str) -> Iterable[Any]:
+    import torch
+
+    from pcrcg.config import color_enabled
+    from pcrcg.models.datamodule import PairDataModule
+    from pcrcg.models.module import PCRCGModule
+
+    module = PCRCGModule.load_from_checkpoint(str(checkpoint), map_location=device)
+    module.eval()
+    data = _plain(cfg)
+    n_views = int(data.get("views", 0) or 0) if color_enabled(data) else 0
+    dm = PairDataModule.from_config(data_root, data["model"], data.get("trainer", {}) or {}, n_views=n_views)
+    state = torch.load(str(checkpoint), map_location="cpu", weights_only=False)
+    dm_state = state.get(type(dm).__qualname__) or state.get("datamodule_state") or {}
+    if dm_state:
+        dm.load_state_dict(dm_state)
+    dm.setup("predict")
+    for batch in dm.benchmark_dataloader(benchmark):
+        yield module.predict_pair(batch.to(device))
+
+
+# --------------------------------------------------------------------------- the pipeline's stage
+
+
+def _protocol(rcfg: RegistrationConfig, gt: Mapping[str, SceneGT], th: Mapping[str, float], seed: int,
+              predator_variant: bool) -> dict[str, Any]:
+    from pcrcg.evaluation.metrics import counted_mask
+
+    return {
+        "pairs": sum(len(g.pairs) for g in gt.values()),
+        "pairs_counted_in_rr": int(sum(counted_mask(g.pairs, predator_variant).sum() for g in gt.values())),
+        "scenes": len(gt),
+        "recall": "per scene, then mean over scenes; j - i > 1 only",
+        "predator_variant": predator_variant,
+        "sampling": rcfg.sampling,
+        "mutual": rcfg.mutual,
+        "ransac": {"backend": rcfg.backend, **dataclasses.asdict(rcfg.ransac)},
+        "thresholds": dict(th),
+        "seed": seed,
+    }
+
+
+def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.PathLike | None = None,
+             out_dir: str | os.PathLike, device: str | None = None, progress: bool = True) -> dict[str, Any]:
+    """The evaluation stage of ``python -m pcrcg.run``.
+
+    Returns ``{"metrics": {"<benchmark>/<name>": value}, "artifacts": [(path, folder)],
+    "protocol": {...}}``. ``method=learned``: ``<b>/rr_<N>``, ``fmr_<N>``, ``ir_<N>``,
+    ``rre_<N>``, ``rte_<N>``, ``<b>/rre``, ``<b>/rte`` (at the largest N) and ``color_coverage``;
+    classical methods: ``<b>/rr``, ``<b>/rre``, ``<b>/rte`` (+ ``fmr``, ``ir`` for fpfh/sift_dlt).
+    ``icp_init=learned`` starts ICP from the learned model's estimates at the largest N.
+    """
+    method = str(_select(cfg, "method", "learned"))
+    seed = int(_select(cfg, "seed", 0))
+    benchmarks = list(_plain(_select(cfg, "eval.benchmarks", list(BENCHMARKS))))
+    max_pairs = _select(cfg, "eval.max_pairs", None)
+    max_pairs = int(max_pairs) if max_pairs is not None else None
+    predator_variant = bool(_select(cfg, "eval.predator_variant", False))
+    rcfg, bcfg = configs_from(cfg, device)
+    th = thresholds_from(cfg)
+    out_dir = Path(out_dir)
+    gts = check_layout(data_root, benchmarks)
+    metrics: dict[str, float] = {}
+    artifacts: list[tuple[Path, str]] = []
+    protocol: dict[str, Any] = {"method": method}
+    coverage: list[float] = []
+    for b in benchmarks:
+        gt = gts[b]
+        protocol[b] = _protocol(rcfg, gt, th, seed, predator_variant)
+        if method == "learned" or (method in ("icp", "color_icp") and _select(cfg, "icp_init") == "learned"):
+            est_dir = out_dir / "learned" / b
+            outputs = predict_outputs(cfg, data_root, checkpoint, b, rcfg.device, max_pairs)
+            m = evaluate_model_outputs(outputs, gt, cfg=rcfg, est_dir=est_dir, seed=seed,
+                                       predator_variant=predator_variant, only_evaluated=max_pairs is not None,
+                                       progress=progress, **th)
+            if method == "learned":
+                for k, v in m.items():
+                    if k == "color_coverage":
+                        coverage.append(v)
+                    else:
+                        metrics[f"{b}/{k}"] = v
+                artifacts.append((est_dir, f"estimates/{b}"))
+                continue
+            init_dir = est_dir / str(max(rcfg.n_points))
+            init, _ = load_estimates(init_dir, gt.keys())
+        else:
+            init = None
+        if method not in CLASSICAL:
+            raise ConfigError("method", method, "learned | " + " | ".join(CLASSICAL))
+        est_dir = out_dir / method / b
+        res = run_classical(method, data_root, b, cfg=bcfg, out_dir=est_dir, init=init,
+                            n_views=int(_select(cfg, "views", 2) or 2), seed=seed, max_pairs=max_pairs, gt=gt,
+                            thresholds=th, progress=progress)
+        for k, v in res["metrics"].items():
+            metrics[f"{b}/{k}"] = v
+        artifacts.append((est_dir, f"estimates/{b}"))
+    if coverage:
+        metrics["color_coverage"] = float(np.mean(coverage))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mfile = out_dir / "metrics.json"
+    mfile.write_text(json.dumps({"metrics": metrics, "protocol": protocol}, indent=1, default=_json_default))
+    artifacts.append((mfile, "evaluation"))
+    return {"metrics": metrics, "artifacts": artifacts, "protocol": protocol}
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, tuple):
+        return list(o)
+    return str(o)
+
+
+def run_benchmark_mode(
+    method: str,
+    data_root: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    benchmarks: Iterable[str],
+    *,
+    rcfg: RegistrationConfig,
+    bcfg: BaselineConfig,
+    init_dir: str | os.PathLike | None = None,
+    n_views: int = 2,
+    seed: int = 0,
+    max_pairs: int | None = None,
+    thresholds: Mapping[str, float] | None = None,
+    predator_variant: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """``python -m pcrcg.evaluate mode=benchmark``: a classical method over every benchmark.
+
+    Writes ``<out_dir>/<benchmark>/<scene>/est.log`` and ``<out_dir>/metrics.json``.
+    ``init_dir`` (ICP) holds ``<benchmark>/<scene>/est.log`` estimates to start from.
+    """
+    benchmarks = list(benchmarks)
+    th = {**thresholds_from({}), **dict(thresholds or {})}
+    gts = check_layout(data_root, benchmarks)
+    inits = {}
+    if init_dir is not None:
+        for b in benchmarks:
+            d = Path(init_dir) / b
+            if not d.is_dir():
+                raise DataError(d, "folder of initial estimates (<benchmark>/<scene>/est.log) is missing")
+            inits[b], _ = load_estimates(d, gts[b].keys())
+    out_dir = Path(out_dir)
+    summary: dict[str, Any] = {"method": method, "data_root": str(data_root), "benchmarks": {}}
+    for b in benchmarks:
+        res = run_classical(method, data_root, b, cfg=bcfg, out_dir=out_dir / b, init=inits.get(b), n_views=n_views,
+                            seed=seed, max_pairs=max_pairs, gt=gts[b], thresholds=th, progress=progress)
+        entry = res["score"].to_dict()
+        entry.update({k: v for k, v in res["metrics"].items() if k not in entry})
+        entry["protocol"] = _protocol(rcfg, gts[b], th, seed, predator_variant)
+        summary["benchmarks"][b] = entry
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1, default=_json_default))
+    return summary

@@ -1,0 +1,127 @@
+"""Settings of the 2D->3D projection module (config groups ``projection`` and ``features``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from pcrcg.errors import ConfigError
+
+PROJECTIONS = ("none", "implicit", "explicit")
+FEATURES = ("none", "rgb", "sift", "deep")
+_DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32}
+
+
+@dataclass
+class LiftingConfig:
+    """What is lifted onto the points, from which views, and how.
+
+    * ``projection``: ``none`` (no color: ``out_dim`` 0) | ``implicit`` (every pixel may be lifted) |
+      ``explicit`` (only pixels within a ``window_size`` x ``window_size`` window centred on a 2D
+      match, the feature scaled by the match confidence).
+    * ``features``: ``none | rgb | sift | deep``; ``feature_dim`` their width (``None``: 3 for rgb,
+      32 for sift/deep, 0 for none; rgb must be 3).
+    * ``views``: 1..3, the first ``views`` of (first, last, middle) frame of each fragment.
+    * ``window_size``: odd >= 1, pixels of the projection grid (explicit only).
+    * ``depth_tolerance``: metres; a point takes a pixel only if ``|z_point - depth| < tolerance``.
+    * ``image_size``: (H, W) of the projection grid (depth, feature maps, windows are resampled to
+      it); ``None`` = each view's own resolution.
+    """
+
+    projection: str = "explicit"
+    features: str = "deep"
+    views: int = 2
+    window_size: int = 11
+    depth_tolerance: float = 0.1
+    feature_dim: int | None = None
+    image_size: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.projection not in PROJECTIONS:
+            raise ConfigError("projection.name", self.projection, " | ".join(PROJECTIONS))
+        if self.features not in FEATURES:
+            raise ConfigError("features.name", self.features, " | ".join(FEATURES))
+        if isinstance(self.views, bool) or not isinstance(self.views, int) or not 1 <= self.views <= 3:
+            raise ConfigError("projection.views", self.views, "1, 2 or 3 (first, last, middle frame)")
+        ws = self.window_size
+        if isinstance(ws, bool) or not isinstance(ws, int) or ws < 1 or ws % 2 == 0:
+            raise ConfigError("projection.window_size", ws, "an odd integer >= 1 (pixels)")
+        try:
+            tol = float(self.depth_tolerance)
+        except (TypeError, ValueError):
+            tol = float("nan")
+        if not tol > 0:
+            raise ConfigError("projection.depth_tolerance", self.depth_tolerance, "metres > 0")
+        self.depth_tolerance = tol
+        if self.feature_dim is None:
+            self.feature_dim = _DEFAULT_DIM[self.features]
+        if isinstance(self.feature_dim, bool) or not isinstance(self.feature_dim, int) or self.feature_dim < 0:
+            raise ConfigError("features.dim", self.feature_dim, "an integer >= 0")
+        if self.features == "rgb" and self.feature_dim != 3:
+            raise ConfigError("features.dim", self.feature_dim, "3 for features=rgb")
+        if self.features in ("sift", "deep") and self.feature_dim < 1:
+            raise ConfigError("features.dim", self.feature_dim, f"an integer >= 1 for features={self.features}")
+        if self.features == "sift" and self.feature_dim > 128:
+            raise ConfigError("features.dim", self.feature_dim, "1..128 for features=sift")
+        if self.image_size is not None:
+            try:
+                size = tuple(int(s) for s in self.image_size)
+            except (TypeError, ValueError):
+                size = ()
+            if len(size) != 2 or min(size) < 1:
+                raise ConfigError("projection.image_size", self.image_size, "null or [H, W] (pixels)")
+            self.image_size = size  # type: ignore[assignment]
+
+    @property
+    def out_dim(self) -> int:
+        """Width of the lifted features: 0 when nothing is lifted. The 3D input is ``1 + out_dim``."""
+        if self.projection == "none" or self.features == "none":
+            return 0
+        return int(self.feature_dim)  # type: ignore[arg-type]
+
+    @property
+    def n_views_needed(self) -> int:
+        """Views a data loader must provide (0 when nothing is lifted)."""
+        return self.views if self.out_dim > 0 else 0
+
+    @classmethod
+    def from_cfg(cls, cfg: Any) -> "LiftingConfig":
+        """From a root config holding ``projection`` and ``features`` nodes (DictConfig or dict)."""
+        proj = _node(cfg, "projection")
+        feat = _node(cfg, "features")
+        size = proj.get("image_size")
+        dim = feat.get("dim")
+        return cls(
+            projection=str(proj.get("name", "explicit")),
+            features=str(feat.get("name", "deep")),
+            views=_int(proj.get("views", 2), "projection.views"),
+            window_size=_int(proj.get("window_size", 11), "projection.window_size"),
+            depth_tolerance=proj.get("depth_tolerance", 0.1),
+            feature_dim=None if dim is None else _int(dim, "features.dim"),
+            image_size=None if size is None else tuple(size),
+        )
+
+
+def _int(v: Any, setting: str) -> int:
+    if isinstance(v, bool):
+        raise ConfigError(setting, v, "an integer")
+    try:
+        if float(v) != int(v):
+            raise ValueError
+        return int(v)
+    except (TypeError, ValueError):
+        raise ConfigError(setting, v, "an integer") from None
+
+
+def _node(cfg: Any, key: str) -> dict[str, Any]:
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            sub = OmegaConf.select(cfg, key)
+            return {} if sub is None else dict(OmegaConf.to_container(sub, resolve=True))  # type: ignore[arg-type]
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(cfg, Mapping):
+        return dict(cfg.get(key) or {})
+    return dict(getattr(cfg, key, None) or {})

@@ -1,0 +1,40 @@
+"""The 3D network stage: KPConv + Predator, losses, the Lightning module and data module.
+
+Public API (imported lazily, so ``import pcrcg.models`` stays cheap):
+
+* :class:`~pcrcg.models.predator.Predator` / :func:`~pcrcg.models.predator.build_predator`
+  ``(model_cfg, in_dim)``; :class:`~pcrcg.models.predator.PredatorConfig`.
+* :class:`~pcrcg.models.losses.PredatorLoss`, :func:`~pcrcg.models.losses.circle_loss`,
+  :func:`~pcrcg.models.losses.weighted_bce`.
+* :class:`~pcrcg.models.module.PCRCGModule`, :class:`~pcrcg.models.module.FragmentOutput`,
+  :class:`~pcrcg.models.module.PairOutput`.
+* :class:`~pcrcg.models.datamodule.PairDataModule`, :class:`~pcrcg.models.datamodule.PairCollate`,
+  :class:`~pcrcg.models.datamodule.PairBatch`.
+* :func:`pcrcg.models.train.train` ``(cfg) -> checkpoint path`` (import it from the submodule:
+  ``pcrcg.models.train`` is the module's name), :func:`~pcrcg.models.train.infer`,
+  :func:`~pcrcg.models.train.infer_clouds`, :func:`~pcrcg.models.train.load_module`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "Predator": "predator", "PredatorConfig": "predator", "PredatorOutput": "predator", "build_predator": "predator",
+    "PredatorLoss": "losses", "LossConfig": "losses", "circle_loss": "losses", "weighted_bce": "losses",
+    "PCRCGModule": "module", "FragmentOutput": "module", "PairOutput": "module", "OptimConfig": "module",
+    "PairDataModule": "datamodule", "PairCollate": "datamodule", "PairBatch": "datamodule",
+    "AugmentConfig": "datamodule",
+    "infer": "train", "infer_clouds": "train", "load_module": "train",
+    "save_pair_output": "train", "load_pair_output": "train",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"pcrcg.models.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'pcrcg.models' has no attribute {name!r}")
+
+
+__all__ = sorted(_EXPORTS)

@@ -1,0 +1,129 @@
+"""KPConv network blocks (Predator / KPConv-FCNN style).
+
+Every block takes ``(x, pyr)``: features (N_l, C) at its level and a :class:`TensorPyramid`
+(points, neighbours, pools and upsamples per level of the stacked pair).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from pcrcg.models.kpconv.conv import KPConv
+from pcrcg.models.kpconv.pyramid import TensorPyramid
+
+
+class PointNorm(nn.Module):
+    """Per-channel normalisation over all points of the (stacked) cloud, no running statistics.
+
+    x (N, C) -> (N, C). Predator normalises this way (an instance norm over the points), which
+    behaves the same in training and evaluation and does not depend on the batch size.
+    """
+
+    def __init__(self, channels: int, eps: float = 1e-5, affine: bool = False):
+        super().__init__()
+        self.channels, self.eps = channels, eps
+        if affine:
+            self.weight = nn.Parameter(torch.ones(channels))
+            self.bias = nn.Parameter(torch.zeros(channels))
+        else:
+            self.weight = self.bias = None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        var, mean = torch.var_mean(x, dim=0, unbiased=False, keepdim=True)
+        y = (x - mean) * torch.rsqrt(var + self.eps)
+        if self.weight is not None:
+            y = y * self.weight + self.bias
+        return y
+
+
+class UnaryBlock(nn.Module):
+    """Linear (no bias) -> PointNorm -> LeakyReLU(0.1) (no ReLU when ``relu=False``)."""
+
+    def __init__(self, in_dim: int, out_dim: int, relu: bool = True):
+        super().__init__()
+        self.mlp = nn.Linear(in_dim, out_dim, bias=False)
+        self.norm = PointNorm(out_dim)
+        self.act = nn.LeakyReLU(0.1) if relu else nn.Identity()
+
+    def forward(self, x: torch.Tensor, pyr: TensorPyramid | None = None) -> torch.Tensor:
+        return self.act(self.norm(self.mlp(x)))
+
+
+class LastUnaryBlock(nn.Module):
+    """Final linear layer, no normalisation or activation."""
+
+    def __init__(self, in_dim: int, out_dim: int):
+        super().__init__()
+        self.mlp = nn.Linear(in_dim, out_dim, bias=False)
+
+    def forward(self, x: torch.Tensor, pyr: TensorPyramid | None = None) -> torch.Tensor:
+        return self.mlp(x)
+
+
+def _conv_inputs(pyr: TensorPyramid, layer: int, strided: bool):
+    if strided:
+        return pyr.points[layer + 1], pyr.points[layer], pyr.pools[layer]
+    return pyr.points[layer], pyr.points[layer], pyr.neighbors[layer]
+
+
+def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
+    """Max of the features of each row of ``inds`` (shadow rows give 0): x (N, C), inds (M, H) -> (M, C)."""
+    x = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
+    return x[inds].max(dim=1).values
+
+
+class SimpleBlock(nn.Module):
+    """KPConv (in -> out // 2) -> PointNorm -> LeakyReLU; the first block of the encoder."""
+
+    def __init__(self, in_dim: int, out_dim: int, radius: float, extent: float, layer: int,
+                 strided: bool = False, n_kernel_points: int = 15, kernel_seed: int = 0):
+        super().__init__()
+        self.layer, self.strided = layer, strided
+        self.conv = KPConv(in_dim, out_dim // 2, radius, extent, n_kernel_points, kernel_seed)
+        self.norm = PointNorm(out_dim // 2)
+        self.act = nn.LeakyReLU(0.1)
+
+    def forward(self, x: torch.Tensor, pyr: TensorPyramid) -> torch.Tensor:
+        q, s, n = _conv_inputs(pyr, self.layer, self.strided)
+        return self.act(self.norm(self.conv(q, s, n, x)))
+
+
+class ResnetBottleneckBlock(nn.Module):
+    """unary(in -> out/4) -> KPConv(out/4) -> unary(out/4 -> out) + shortcut, LeakyReLU.
+
+    Strided: the KPConv queries the next level's points through the pooling neighbours and the
+    shortcut is a max-pool over the same neighbours.
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, radius: float, extent: float, layer: int,
+                 strided: bool = False, n_kernel_points: int = 15, kernel_seed: int = 0):
+        super().__init__()
+        self.layer, self.strided = layer, strided
+        mid = out_dim // 4
+        self.unary1 = UnaryBlock(in_dim, mid) if in_dim != mid else nn.Identity()
+        self.conv = KPConv(mid, mid, radius, extent, n_kernel_points, kernel_seed)
+        self.norm_conv = PointNorm(mid)
+        self.unary2 = UnaryBlock(mid, out_dim, relu=False)
+        self.shortcut = UnaryBlock(in_dim, out_dim, relu=False) if in_dim != out_dim else nn.Identity()
+        self.act = nn.LeakyReLU(0.1)
+
+    def forward(self, feats: torch.Tensor, pyr: TensorPyramid) -> torch.Tensor:
+        q, s, n = _conv_inputs(pyr, self.layer, self.strided)
+        x = self.unary1(feats)
+        x = self.act(self.norm_conv(self.conv(q, s, n, x)))
+        x = self.unary2(x)
+        short = max_pool(feats, n) if self.strided else feats
+        return self.act(x + self.shortcut(short))
+
+
+class NearestUpsampleBlock(nn.Module):
+    """Features of level ``layer`` copied to level ``layer - 1`` from the nearest coarse point."""
+
+    def __init__(self, layer: int):
+        super().__init__()
+        self.layer = layer
+
+    def forward(self, x: torch.Tensor, pyr: TensorPyramid) -> torch.Tensor:
+        x = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
+        return x[pyr.upsamples[self.layer - 1][:, 0]]

@@ -1,0 +1,81 @@
+"""Point-cloud operations of the data pipeline (NumPy/SciPy, run on the CPU in the collate step).
+
+Neighbour index arrays use KPConv's *shadow* convention: a row lists the indices of a query's
+support points sorted by distance, padded with ``len(supports)`` (the shadow index), which the
+network maps to a zero feature / a point at infinity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def grid_subsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Barycentres of the points in each occupied cell of a ``voxel`` grid.
+
+    points (N, 3) float -> (M, 3) float32, M <= N, in order of first cell index (deterministic).
+    """
+    if voxel <= 0:
+        raise ValueError(f"voxel must be positive, got {voxel}")
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.zeros((0, 3), np.float32)
+    cell = np.floor(pts / voxel).astype(np.int64)
+    cell -= cell.min(axis=0)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, pts)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+def radius_neighbors(
+    queries: np.ndarray, supports: np.ndarray, radius: float, max_neighbors: int, workers: int = 1
+) -> np.ndarray:
+    """Indices of the supports within ``radius`` of each query, nearest first.
+
+    queries (M, 3), supports (N, 3) -> (M, H) int64 with H = min(max_neighbors, the largest count),
+    padded with N (shadow). A query has at most ``max_neighbors`` neighbours (the farthest are dropped).
+    """
+    n = len(supports)
+    k = int(max(1, min(max_neighbors, n)))
+    if len(queries) == 0 or n == 0:
+        return np.full((len(queries), 1), n, dtype=np.int64)
+    tree = cKDTree(np.asarray(supports, dtype=np.float64))
+    _, idx = tree.query(np.asarray(queries, dtype=np.float64), k=k, distance_upper_bound=radius, workers=workers)
+    idx = np.asarray(idx, dtype=np.int64).reshape(len(queries), k)
+    width = int(max(1, (idx < n).sum(axis=1).max()))
+    return np.ascontiguousarray(idx[:, :width])
+
+
+def nearest_neighbor(queries: np.ndarray, supports: np.ndarray, workers: int = 1) -> np.ndarray:
+    """Index of the nearest support of each query: (M, 1) int64 (N when there are no supports)."""
+    n = len(supports)
+    if n == 0 or len(queries) == 0:
+        return np.full((len(queries), 1), n, dtype=np.int64)
+    _, idx = cKDTree(np.asarray(supports, dtype=np.float64)).query(np.asarray(queries, dtype=np.float64), k=1,
+                                                                   workers=workers)
+    return np.asarray(idx, dtype=np.int64).reshape(-1, 1)
+
+
+def neighbor_counts(queries: np.ndarray, supports: np.ndarray, radius: float, workers: int = 1) -> np.ndarray:
+    """Number of supports within ``radius`` of each query: (M,) int64 (for calibrating limits)."""
+    if len(supports) == 0:
+        return np.zeros(len(queries), np.int64)
+    tree = cKDTree(np.asarray(supports, dtype=np.float64))
+    return np.asarray(tree.query_ball_point(np.asarray(queries, dtype=np.float64), radius, return_length=True,
+                                            workers=workers), dtype=np.int64)
+
+
+def radius_pairs(src: np.ndarray, tgt: np.ndarray, radius: float) -> np.ndarray:
+    """All pairs (a, b) with |src[a] - tgt[b]| < radius: (C, 2) int64, sorted by (a, b)."""
+    if len(src) == 0 or len(tgt) == 0:
+        return np.zeros((0, 2), np.int64)
+    ts, tt = cKDTree(np.asarray(src, np.float64)), cKDTree(np.asarray(tgt, np.float64))
+    coo = ts.sparse_distance_matrix(tt, radius, output_type="ndarray")
+    pairs = np.stack([coo["i"], coo["j"]], axis=1).astype(np.int64)
+    if len(pairs):
+        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    return pairs

@@ -1,0 +1,218 @@
+"""Predator's training losses: circle loss on descriptors, weighted BCE on overlap and matchability.
+
+Definitions (Predator, CVPR 2021, and its public training code):
+
+* ground-truth correspondences: source point a and target point b with |T a - b| < overlap_radius;
+* circle loss on at most ``max_points`` sampled correspondences: for the sampled source and target
+  points, positives are pairs closer than ``pos_radius``, negatives farther than ``safe_radius``;
+  with feature distances d (descriptors are unit vectors),
+
+      w_p = max(0, d_p - pos_optimal),  w_n = max(0, neg_optimal - d_n)   (no gradient)
+      L_row(i) = softplus( logsumexp_p[ s * w_p * (d_p - pos_margin) ]
+                         + logsumexp_n[ s * w_n * (neg_margin - d_n) ] ) / s
+
+  averaged over the rows (and, symmetrically, the columns) that have both a positive and a
+  negative, then the two averages are averaged (s = ``log_scale``). As in Predator's code, the
+  entries outside a row's positive (negative) set enter its logsumexp with a logit of 0;
+* overlap loss: class-balanced BCE on "has a correspondence" for every point of both fragments;
+  weights w+ = 1 - mean(label), w- = mean(label);
+* matchability loss: the same BCE on the overlap points only, label 1 where the point's mutual-feature
+  nearest neighbour among the other fragment's overlap points lies within ``matchability_radius``.
+
+All radii are given in metres here; the config gives them in voxel units (see :class:`LossConfig`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import torch
+import torch.nn.functional as F
+
+
+@dataclass
+class LossConfig:
+    """Loss settings; ``*_radius`` in units of the model voxel size (Predator at 2.5 cm:
+    pos/overlap 0.0375 m = 1.5 voxels, safe 0.1 m = 4, matchability 0.05 m = 2)."""
+
+    pos_radius: float = 1.5
+    safe_radius: float = 4.0
+    overlap_radius: float = 1.5
+    matchability_radius: float = 2.0
+    pos_margin: float = 0.1
+    neg_margin: float = 1.4
+    pos_optimal: float = 0.1
+    neg_optimal: float = 1.4
+    log_scale: float = 24.0
+    max_points: int = 256
+    w_circle: float = 1.0
+    w_overlap: float = 1.0
+    w_matchability: float = 1.0
+    # Predator adds the matchability loss once the validation feature-match recall exceeds this
+    matchability_after_recall: float = 0.3
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any] | None) -> "LossConfig":
+        names = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+
+
+def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,
+                pos_margin: float = 0.1, neg_margin: float = 1.4, pos_optimal: float = 0.1,
+                neg_optimal: float = 1.4, log_scale: float = 24.0) -> torch.Tensor:
+    """Circle loss of a source x target block: coords_dist, feats_dist (n, m) -> scalar.
+
+    Returns 0 (connected to the graph) when no row or column has both a positive and a negative.
+    """
+    pos = coords_dist < pos_radius
+    neg = coords_dist > safe_radius
+    row_sel = (pos.sum(-1) > 0) & (neg.sum(-1) > 0)
+    col_sel = (pos.sum(-2) > 0) & (neg.sum(-2) > 0)
+    big = 1e5
+    w_pos = torch.clamp(feats_dist - big * (~pos).float() - pos_optimal, min=0).detach()
+    w_neg = torch.clamp(neg_optimal - (feats_dist + big * (~neg).float()), min=0).detach()
+    pos_term = log_scale * (feats_dist - pos_margin) * w_pos
+    neg_term = log_scale * (neg_margin - feats_dist) * w_neg
+    loss_row = F.softplus(torch.logsumexp(pos_term, -1) + torch.logsumexp(neg_term, -1)) / log_scale
+    loss_col = F.softplus(torch.logsumexp(pos_term, -2) + torch.logsumexp(neg_term, -2)) / log_scale
+    parts = []
+    if row_sel.any():
+        parts.append(loss_row[row_sel].mean())
+    if col_sel.any():
+        parts.append(loss_col[col_sel].mean())
+    if not parts:
+        return feats_dist.sum() * 0.0
+    # Predator averages the row and column means; with one side empty we keep the other
+    return torch.stack(parts).mean()
+
+
+def weighted_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Class-balanced BCE: logits (N,), labels (N,) in {0, 1} -> scalar (Predator's weights)."""
+    if labels.numel() == 0:
+        return logits.sum() * 0.0
+    labels = labels.to(logits.dtype)
+    w_neg = labels.mean()
+    w_pos = 1.0 - w_neg
+    weights = torch.where(labels >= 0.5, w_pos, w_neg).detach()
+    return (weights * F.binary_cross_entropy_with_logits(logits, labels, reduction="none")).mean()
+
+
+def precision_recall(prob: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Binary precision and recall at 0.5 (0 where undefined): prob, labels (N,) -> (p, r)."""
+    pred = prob > 0.5
+    gt = labels > 0.5
+    tp = (pred & gt).sum().float()
+    p = tp / pred.sum().clamp(min=1).float()
+    r = tp / gt.sum().clamp(min=1).float()
+    return p, r
+
+
+def feature_match_recall(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float) -> torch.Tensor:
+    """Fraction of rows with a true positive whose feature nearest neighbour is a positive."""
+    has_pos = (coords_dist < pos_radius).any(-1)
+    nn_idx = feats_dist.argmin(-1, keepdim=True)
+    hit = torch.gather(coords_dist, -1, nn_idx).squeeze(-1) < pos_radius
+    return (hit & has_pos).sum().float() / has_pos.sum().clamp(min=1).float()
+
+
+def overlap_labels(n_src: int, n_tgt: int, corr: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """1 for points with a correspondence: corr (C, 2) local indices -> (n_src + n_tgt,) float."""
+    lab = torch.zeros(n_src + n_tgt, device=device)
+    if corr.numel():
+        lab[corr[:, 0]] = 1.0
+        lab[n_src + corr[:, 1]] = 1.0
+    return lab
+
+
+@torch.no_grad()
+def matchability_labels(src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_desc: torch.Tensor,
+                        tgt_desc: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Whether each point's best descriptor match in the other set is within ``radius``.
+
+    src_xyz (n, 3) already in the target frame, tgt_xyz (m, 3), descriptors (n, D)/(m, D)
+    -> labels (n,), (m,) float.
+    """
+    if len(src_xyz) == 0 or len(tgt_xyz) == 0:
+        z = src_xyz.new_zeros
+        return z(len(src_xyz)), z(len(tgt_xyz))
+    scores = src_desc @ tgt_desc.t()
+    d1 = torch.linalg.vector_norm(src_xyz - tgt_xyz[scores.argmax(1)], dim=1)
+    d2 = torch.linalg.vector_norm(tgt_xyz - src_xyz[scores.argmax(0)], dim=1)
+    return (d1 < radius).float(), (d2 < radius).float()
+
+
+def transform_torch(T: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Rigid 4x4 applied to (N, 3) points (torch)."""
+    T = T.to(pts.dtype)
+    return pts @ T[:3, :3].t() + T[:3, 3]
+
+
+class PredatorLoss(torch.nn.Module):
+    """All of Predator's losses and training statistics for one pair.
+
+    ``forward(descriptors, overlap_logits, matchability_logits, points, n_src, transform, corr,
+    w_matchability)`` with level-0 stacked ``points`` (N, 3) (source first), ``transform`` (4, 4)
+    mapping source into target, ``corr`` (C, 2) local indices -> dict of scalars
+    (``loss``, ``circle_loss``, ``overlap_loss``, ``matchability_loss``, ``recall``,
+    ``overlap_precision``, ``overlap_recall``, ``matchability_precision``, ``matchability_recall``,
+    ``n_corr``).
+    """
+
+    def __init__(self, cfg: LossConfig, voxel_size: float):
+        super().__init__()
+        self.cfg = cfg
+        self.v = float(voxel_size)
+
+    def radius(self, name: str) -> float:
+        return getattr(self.cfg, name) * self.v
+
+    def forward(self, descriptors: torch.Tensor, overlap_logits: torch.Tensor, matchability_logits: torch.Tensor,
+                points: torch.Tensor, n_src: int, transform: torch.Tensor, corr: torch.Tensor,
+                w_matchability: float | torch.Tensor = 1.0,
+                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        c = self.cfg
+        dev = descriptors.device
+        src_xyz = transform_torch(transform, points[:n_src])
+        tgt_xyz = points[n_src:]
+        n_tgt = len(tgt_xyz)
+        stats: dict[str, torch.Tensor] = {}
+
+        # overlap: every point, label = has a correspondence
+        ov_lab = overlap_labels(n_src, n_tgt, corr, dev)
+        stats["overlap_loss"] = weighted_bce(overlap_logits, ov_lab)
+        stats["overlap_precision"], stats["overlap_recall"] = precision_recall(torch.sigmoid(overlap_logits), ov_lab)
+
+        # matchability: overlap points only
+        s_idx = torch.unique(corr[:, 0]) if corr.numel() else corr.new_zeros(0)
+        t_idx = torch.unique(corr[:, 1]) if corr.numel() else corr.new_zeros(0)
+        l_src, l_tgt = matchability_labels(src_xyz[s_idx], tgt_xyz[t_idx], descriptors[s_idx].detach(),
+                                           descriptors[n_src + t_idx].detach(), self.radius("matchability_radius"))
+        m_lab = torch.cat([l_src, l_tgt])
+        m_logit = torch.cat([matchability_logits[s_idx], matchability_logits[n_src + t_idx]])
+        stats["matchability_loss"] = weighted_bce(m_logit, m_lab)
+        stats["matchability_precision"], stats["matchability_recall"] = precision_recall(torch.sigmoid(m_logit), m_lab)
+
+        # circle loss on sampled correspondences closer than pos_radius
+        pos_r = self.radius("pos_radius")
+        if corr.numel():
+            cd = torch.linalg.vector_norm(src_xyz[corr[:, 0]] - tgt_xyz[corr[:, 1]], dim=1)
+            corr = corr[cd < pos_r]
+        stats["n_corr"] = torch.tensor(float(len(corr)), device=dev)
+        if len(corr) > c.max_points:
+            pick = torch.randperm(len(corr), generator=generator, device="cpu" if generator is not None else dev)
+            corr = corr[pick[: c.max_points].to(corr.device)]
+        if len(corr):
+            a, b = corr[:, 0], corr[:, 1]
+            coords_dist = torch.cdist(src_xyz[a], tgt_xyz[b])
+            fd2 = 2.0 - 2.0 * descriptors[a] @ descriptors[n_src + b].t()
+            feats_dist = torch.sqrt(torch.clamp(fd2, min=1e-12))
+            stats["circle_loss"] = circle_loss(coords_dist, feats_dist, pos_r, self.radius("safe_radius"),
+                                               c.pos_margin, c.neg_margin, c.pos_optimal, c.neg_optimal, c.log_scale)
+            stats["recall"] = feature_match_recall(coords_dist, feats_dist.detach(), pos_r)
+        else:
+            stats["circle_loss"] = descriptors.sum() * 0.0
+            stats["recall"] = torch.tensor(0.0, device=dev)
+        stats["loss"] = (c.w_circle * stats["circle_loss"] + c.w_overlap * stats["overlap_loss"]
+                         + c.w_matchability * w_matchability * stats["matchability_loss"])
+        return stats

@@ -1,0 +1,233 @@
+"""The Lightning module: Predator + (optionally) the 2D encoder and the 2D->3D projection module.
+
+``projection=none`` (or ``features=none``): geometry only, the 3D input is a constant 1 per point
+(``in_dim = 1``). Otherwise a :class:`pcrcg.lifting.ColorLifter` (which holds the 2D feature
+extractor and its encoder as submodules, so the 3D loss trains them end to end) lifts color
+features onto the level-0 points of both fragments in their own frames, and the input is
+``[1, lifted features]`` (``in_dim = 1 + lifter.out_dim``): the paper's only change to the network.
+
+Optimisation as the paper / Predator: SGD (lr 0.005, momentum 0.98, weight decay 1e-6), the
+learning rate times 0.95 after every epoch, batch size 1. The matchability loss joins once the
+validation feature-match recall exceeds ``loss.matchability_after_recall`` (Predator's schedule).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any, Mapping
+
+import lightning as L
+import numpy as np
+import torch
+
+from pcrcg.models.datamodule import PairBatch
+from pcrcg.models.losses import LossConfig, PredatorLoss
+from pcrcg.models.predator import PredatorOutput, build_predator
+
+STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
+             "overlap_recall", "matchability_precision", "matchability_recall")
+
+
+@dataclass
+class OptimConfig:
+    """SGD + exponential decay per epoch (the paper's settings by default)."""
+
+    lr: float = 0.005
+    momentum: float = 0.98
+    weight_decay: float = 1e-6
+    lr_decay: float = 0.95
+    encoder_lr_scale: float = 1.0  # learning-rate factor of the 2D branch
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any] | None) -> "OptimConfig":
+        names = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+
+
+@dataclass
+class FragmentOutput:
+    """Network outputs for one fragment, in its own frame (the registration stage's input).
+
+    points (N, 3) float32, descriptors (N, D) float32 (unit norm), overlap (N,) float32 and
+    matchability (N,) float32 in [0, 1].
+    """
+
+    points: np.ndarray
+    descriptors: np.ndarray
+    overlap: np.ndarray
+    matchability: np.ndarray
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {"points": self.points, "descriptors": self.descriptors, "overlap": self.overlap,
+                "matchability": self.matchability}
+
+
+@dataclass
+class PairOutput:
+    """Outputs of both fragments of a pair; ``transform`` is the data set's ground truth (src -> tgt)."""
+
+    scene: str
+    i: int
+    j: int
+    src: FragmentOutput
+    tgt: FragmentOutput
+    transform: np.ndarray
+    color_coverage: float = float("nan")
+
+
+def build_lifter_from(lifting: Mapping[str, Any] | None):
+    """A ColorLifter from a mapping with ``projection``/``features``/``encoder2d``/``matcher2d`` nodes,
+    or None when nothing is lifted (geometry only; the lifting package is then not even imported)."""
+    if not lifting:
+        return None
+    proj = (lifting.get("projection") or {}).get("name", "none")
+    feat = (lifting.get("features") or {}).get("name", "none")
+    if proj == "none" or feat == "none":
+        return None
+    from pcrcg.lifting import build_lifter
+
+    lifter = build_lifter(dict(lifting))
+    return lifter if lifter.out_dim > 0 else None
+
+
+class PCRCGModule(L.LightningModule):
+    """``PCRCGModule(model, optim=None, lifting=None)``.
+
+    ``model``: the ``model`` config node (``conf/model/predator.yaml``; ``loss`` sub-node);
+    ``optim``: :class:`OptimConfig` fields; ``lifting``: ``{"projection", "features", "encoder2d",
+    "matcher2d"}`` nodes or None. ``lifter`` (optional) overrides the one built from ``lifting``.
+    """
+
+    def __init__(self, model: Mapping[str, Any], optim: Mapping[str, Any] | None = None,
+                 lifting: Mapping[str, Any] | None = None, lifter: torch.nn.Module | None = None):
+        super().__init__()
+        self.save_hyperparameters(ignore=["lifter"])
+        self.lifter = lifter if lifter is not None else build_lifter_from(lifting)
+        lifted = int(self.lifter.out_dim) if self.lifter is not None else 0
+        self.net = build_predator(dict(model), in_dim=1 + lifted)
+        self.loss_cfg = LossConfig.from_mapping(model.get("loss"))
+        self.criterion = PredatorLoss(self.loss_cfg, float(model["voxel_size"]))
+        self.optim_cfg = OptimConfig.from_mapping(optim)
+        gate = 1.0 if self.loss_cfg.matchability_after_recall <= 0 else 0.0
+        self.register_buffer("matchability_gate", torch.tensor(gate))
+        self.skipped_pairs = 0
+        self._val_recalls: list[float] = []
+
+    # ------------------------------------------------------------------ forward
+    @property
+    def in_dim(self) -> int:
+        return self.net.cfg.in_dim
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        if isinstance(batch, PairBatch):
+            return batch.to(device)
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    def input_features(self, batch: PairBatch) -> tuple[torch.Tensor, float]:
+        """(N0, in_dim) network input of the stacked pair and the color coverage (nan without color)."""
+        n0 = batch.pyramid.points[0].shape[0]
+        ones = batch.pyramid.points[0].new_ones((n0, 1))
+        if self.lifter is None:
+            return ones, float("nan")
+        sample = SimpleNamespace(src_points=batch.src_frame_points, tgt_points=batch.tgt_frame_points,
+                                 src_views=batch.src_views, tgt_views=batch.tgt_views)
+        from pcrcg.lifting import lift_pair
+
+        lifted = lift_pair(self.lifter, sample, getattr(batch, "matches", None), device=ones.device)
+        feats = torch.cat([lifted.src_feats, lifted.tgt_feats], 0).to(ones.dtype)
+        return torch.cat([ones, feats], 1), float(lifted.color_coverage)
+
+    def forward(self, batch: PairBatch) -> tuple[PredatorOutput, float]:
+        feats, coverage = self.input_features(batch)
+        return self.net(feats, batch.pyramid), coverage
+
+    def compute_stats(self, batch: PairBatch, out: PredatorOutput) -> dict[str, torch.Tensor]:
+        return self.criterion(out.descriptors, out.overlap_logits, out.matchability_logits, batch.pyramid.points[0],
+                              batch.n_src, batch.transform, batch.corr, self.matchability_gate)
+
+    # ------------------------------------------------------------------ steps
+    def training_step(self, batch: PairBatch, batch_idx: int):
+        if batch.corr.shape[0] == 0:  # no overlap after subsampling: nothing to learn from this pair
+            self.skipped_pairs += 1
+            self.log("train/skipped_pairs", float(self.skipped_pairs), batch_size=1)
+            return None
+        out, coverage = self(batch)
+        stats = self.compute_stats(batch, out)
+        self.log_dict({f"train/{k}": stats[k].detach() for k in STAT_KEYS}, batch_size=1, prog_bar=False)
+        self.log("train/loss_step", stats["loss"].detach(), batch_size=1, prog_bar=True, logger=False)
+        if coverage == coverage:
+            self.log("train/color_coverage", coverage, batch_size=1)
+        return stats["loss"]
+
+    def validation_step(self, batch: PairBatch, batch_idx: int) -> None:
+        if batch.corr.shape[0] == 0:
+            return None
+        out, coverage = self(batch)
+        stats = self.compute_stats(batch, out)
+        self._val_recalls.append(float(stats["recall"]))
+        self.log_dict({f"val/{k}": stats[k] for k in STAT_KEYS}, batch_size=1, on_epoch=True, on_step=False,
+                      prog_bar=False)
+        if coverage == coverage:
+            self.log("val/color_coverage", coverage, batch_size=1, on_epoch=True, on_step=False)
+
+    def on_validation_epoch_start(self) -> None:
+        self._val_recalls = []
+
+    def on_validation_epoch_end(self) -> None:
+        recalls, self._val_recalls = self._val_recalls, []
+        if self._trainer is not None and self.trainer.sanity_checking:
+            return
+        thr = self.loss_cfg.matchability_after_recall
+        if recalls and thr > 0:
+            # Predator: the matchability loss is on while the validation recall is above the threshold
+            self.matchability_gate.fill_(1.0 if float(np.mean(recalls)) > thr else 0.0)
+        if self._trainer is not None:
+            self.log("val/matchability_gate", float(self.matchability_gate), batch_size=1)
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Skip the update when a gradient is not finite (Predator skips such steps too)."""
+        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        if not grads:
+            return
+        norms = torch.stack([torch.linalg.vector_norm(g.detach()) for g in grads])
+        if not bool(torch.isfinite(norms).all()):
+            for p in self.parameters():
+                p.grad = None
+            self.log("train/nonfinite_grad_skips", 1.0, batch_size=1, reduce_fx="sum")
+
+    @torch.no_grad()
+    def predict_pair(self, batch: PairBatch) -> PairOutput:
+        """Outputs of both fragments in their own frames (un-doing any augmentation of the batch)."""
+        out, coverage = self(batch)
+        ns = batch.n_src
+        pts = batch.pyramid.points[0]
+        to_np = lambda t: t.detach().float().cpu().numpy()  # noqa: E731
+
+        def frag(sl: slice, frame_pts: Any) -> FragmentOutput:
+            fp = frame_pts if isinstance(frame_pts, np.ndarray) else to_np(frame_pts)
+            return FragmentOutput(np.asarray(fp, np.float32), to_np(out.descriptors[sl]), to_np(out.overlap[sl]),
+                                  to_np(out.matchability[sl]))
+
+        src = frag(slice(0, ns), batch.src_frame_points)
+        tgt = frag(slice(ns, pts.shape[0]), batch.tgt_frame_points)
+        # ground truth in the fragments' own frames
+        A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
+        T = np.linalg.inv(A_t) @ batch.transform.double().cpu().numpy() @ A_s
+        return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage)
+
+    def predict_step(self, batch: PairBatch, batch_idx: int, dataloader_idx: int = 0) -> PairOutput:
+        return self.predict_pair(batch)
+
+    # ------------------------------------------------------------------ optimisation
+    def configure_optimizers(self):
+        c = self.optim_cfg
+        net_params = [p for p in self.net.parameters() if p.requires_grad]
+        groups = [{"params": net_params, "lr": c.lr}]
+        if self.lifter is not None:
+            lp = [p for p in self.lifter.parameters() if p.requires_grad]
+            if lp:
+                groups.append({"params": lp, "lr": c.lr * c.encoder_lr_scale})
+        opt = torch.optim.SGD(groups, lr=c.lr, momentum=c.momentum, weight_decay=c.weight_decay)
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=c.lr_decay)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch", "frequency": 1}}

@@ -1,0 +1,282 @@
+"""Predator (Huang et al., CVPR 2021): KPConv encoder-decoder with overlap attention.
+
+Architecture (as Predator's 3DMatch model, generalised to ``num_layers`` levels):
+
+* encoder: ``simple``, ``resnetb`` at level 0; then per level ``resnetb_strided``, ``resnetb``,
+  ``resnetb``; widths ``first_dim * 2**l``;
+* bottleneck: linear to ``gnn_dim``, overlap attention (``self``: a DGCNN edge-conv on the
+  k-nearest coarse points, ``cross``: multi-head attention to the other fragment, ``self``),
+  a projection, a coarse overlap score and a cross-fragment "saliency" score (softmax over
+  descriptor similarity with a learned temperature);
+* decoder: nearest upsampling + unary blocks with skip connections; the last layer outputs
+  ``final_dim`` descriptor channels plus an overlap and a matchability logit per point.
+
+The input width ``in_dim`` is the only thing PCR-CG changes: 1 (a constant) + the lifted width.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcrcg.errors import ConfigError
+from pcrcg.models.kpconv.blocks import (
+    LastUnaryBlock,
+    NearestUpsampleBlock,
+    PointNorm,
+    ResnetBottleneckBlock,
+    SimpleBlock,
+    UnaryBlock,
+)
+from pcrcg.models.kpconv.pyramid import TensorPyramid
+
+
+@dataclass
+class PredatorConfig:
+    """Network sizes. Radii are in units of ``voxel_size`` (the level-0 grid), as in Predator."""
+
+    in_dim: int = 1
+    voxel_size: float = 0.025
+    num_layers: int = 4
+    first_dim: int = 128
+    final_dim: int = 32
+    gnn_dim: int = 256
+    num_heads: int = 4
+    dgcnn_k: int = 10
+    attention: Sequence[str] = field(default_factory=lambda: ("self", "cross", "self"))
+    conv_radius: float = 2.5
+    kp_extent: float = 2.0
+    num_kernel_points: int = 15
+    kernel_seed: int = 0
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "PredatorConfig":
+        """Build from a config mapping (unknown keys are ignored)."""
+        names = {f for f in cls.__dataclass_fields__}
+        kw = {k: v for k, v in dict(m).items() if k in names}
+        kw.update(overrides)
+        if "attention" in kw:
+            kw["attention"] = tuple(kw["attention"])
+        return cls(**kw)
+
+    def validate(self) -> None:
+        if self.num_layers < 2:
+            raise ConfigError("model.num_layers", self.num_layers, "an integer >= 2")
+        if self.first_dim % 4 or self.first_dim < 8:
+            raise ConfigError("model.first_dim", self.first_dim, "a multiple of 4, >= 8")
+        if self.gnn_dim % self.num_heads:
+            raise ConfigError("model.num_heads", self.num_heads, f"a divisor of gnn_dim={self.gnn_dim}")
+        for a in self.attention:
+            if a not in ("self", "cross"):
+                raise ConfigError("model.attention", list(self.attention), "a list of 'self' / 'cross'")
+        if self.in_dim < 1:
+            raise ConfigError("model.in_dim", self.in_dim, "an integer >= 1")
+
+
+@dataclass
+class PredatorOutput:
+    """Per level-0 point of the stacked pair (source first): descriptors (N, D) L2-normalised,
+    overlap / matchability probabilities (N,) and their logits (N,)."""
+
+    descriptors: torch.Tensor
+    overlap: torch.Tensor
+    matchability: torch.Tensor
+    overlap_logits: torch.Tensor
+    matchability_logits: torch.Tensor
+
+
+# --------------------------------------------------------------------------- attention
+
+
+def knn_indices(coords: torch.Tensor, k: int) -> torch.Tensor:
+    """The k nearest other points of each point: coords (N, 3) -> (N, k') long, k' = min(k, N - 1)."""
+    n = coords.shape[0]
+    k = max(0, min(k, n - 1))
+    if k == 0:
+        return torch.arange(n, device=coords.device).unsqueeze(1)
+    d = torch.cdist(coords, coords)
+    d.fill_diagonal_(float("inf"))
+    return d.topk(k, dim=1, largest=False).indices
+
+
+def edge_features(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """DGCNN edge features [x_i, x_j - x_i]: x (N, C), idx (N, k) -> (N, k, 2C)."""
+    xi = x.unsqueeze(1).expand(-1, idx.shape[1], -1)
+    return torch.cat([xi, x[idx] - xi], dim=-1)
+
+
+def _edge_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
+    """Per-channel normalisation over all (point, neighbour) entries: (N, k, C) -> (N, k, C)."""
+    var, mean = torch.var_mean(x, dim=(0, 1), unbiased=False, keepdim=True)
+    return (x - mean) * torch.rsqrt(var + eps)
+
+
+class SelfAttentionGraph(nn.Module):
+    """Predator's "self" layer: two edge-convolutions on the coordinate k-NN graph, then a fusion."""
+
+    def __init__(self, dim: int, k: int = 10):
+        super().__init__()
+        self.k = k
+        self.conv1 = nn.Linear(2 * dim, dim, bias=False)
+        self.conv2 = nn.Linear(2 * dim, 2 * dim, bias=False)
+        self.conv3 = nn.Linear(4 * dim, dim, bias=False)
+        self.norm3 = PointNorm(dim)
+
+    def forward(self, coords: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """coords (N, 3), x (N, C) -> (N, C)."""
+        idx = knn_indices(coords, self.k)
+        x1 = F.leaky_relu(_edge_norm(self.conv1(edge_features(x, idx))), 0.2).max(dim=1).values
+        x2 = F.leaky_relu(_edge_norm(self.conv2(edge_features(x1, idx))), 0.2).max(dim=1).values
+        return F.leaky_relu(self.norm3(self.conv3(torch.cat([x, x1, x2], dim=-1))), 0.2)
+
+
+class CrossAttention(nn.Module):
+    """Multi-head attention of one fragment's points to the other's, then an MLP on [x, message]."""
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        self.h = num_heads
+        self.q = nn.Linear(dim, dim)
+        self.k = nn.Linear(dim, dim)
+        self.v = nn.Linear(dim, dim)
+        self.merge = nn.Linear(dim, dim)
+        self.mlp1 = nn.Linear(2 * dim, 2 * dim)
+        self.norm = PointNorm(2 * dim)
+        self.mlp2 = nn.Linear(2 * dim, dim)
+        nn.init.zeros_(self.mlp2.bias)
+
+    def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+        """x (N, C), source (M, C) -> message update (N, C)."""
+        n, c = x.shape
+        d = c // self.h
+        q = self.q(x).view(n, self.h, d).transpose(0, 1)  # (h, N, d)
+        k = self.k(source).view(-1, self.h, d).transpose(0, 1)  # (h, M, d)
+        v = self.v(source).view(-1, self.h, d).transpose(0, 1)
+        attn = torch.softmax(q @ k.transpose(1, 2) / d**0.5, dim=-1)  # (h, N, M)
+        msg = self.merge((attn @ v).transpose(0, 1).reshape(n, c))
+        return self.mlp2(F.relu(self.norm(self.mlp1(torch.cat([x, msg], dim=-1)))))
+
+
+class OverlapAttention(nn.Module):
+    """The bottleneck graph network: a sequence of ``self`` / ``cross`` layers over both fragments."""
+
+    def __init__(self, dim: int, num_heads: int, k: int, layers: Sequence[str]):
+        super().__init__()
+        self.names = list(layers)
+        self.layers = nn.ModuleList(
+            [CrossAttention(dim, num_heads) if n == "cross" else SelfAttentionGraph(dim, k) for n in self.names]
+        )
+
+    def forward(self, src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src: torch.Tensor,
+                tgt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        for name, layer in zip(self.names, self.layers):
+            if name == "cross":
+                src = src + layer(src, tgt)
+                tgt = tgt + layer(tgt, src)
+            else:
+                src, tgt = layer(src_xyz, src), layer(tgt_xyz, tgt)
+        return src, tgt
+
+
+# --------------------------------------------------------------------------- network
+
+
+class Predator(nn.Module):
+    """Predator on a stacked pair: ``forward(features (N0, in_dim), pyramid) -> PredatorOutput``."""
+
+    def __init__(self, cfg: PredatorConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        L, v = cfg.num_layers, cfg.voxel_size
+        kp = dict(n_kernel_points=cfg.num_kernel_points, kernel_seed=cfg.kernel_seed)
+
+        def radius(layer: int) -> float:
+            return v * cfg.conv_radius * 2**layer
+
+        def extent(layer: int) -> float:
+            return v * cfg.kp_extent * 2**layer
+
+        dims = [cfg.first_dim * 2**l for l in range(L)]
+        enc: list[nn.Module] = [
+            SimpleBlock(cfg.in_dim, dims[0], radius(0), extent(0), 0, **kp),
+            ResnetBottleneckBlock(dims[0] // 2, dims[0], radius(0), extent(0), 0, **kp),
+        ]
+        self.skip_before: list[int] = []
+        self.skip_dims: list[int] = []
+        for l in range(1, L):
+            self.skip_before.append(len(enc))
+            self.skip_dims.append(dims[l - 1])
+            enc.append(ResnetBottleneckBlock(dims[l - 1], dims[l - 1], radius(l - 1), extent(l - 1), l - 1,
+                                             strided=True, **kp))
+            enc.append(ResnetBottleneckBlock(dims[l - 1], dims[l], radius(l), extent(l), l, **kp))
+            enc.append(ResnetBottleneckBlock(dims[l], dims[l], radius(l), extent(l), l, **kp))
+        self.encoder = nn.ModuleList(enc)
+
+        g = cfg.gnn_dim
+        self.bottle = nn.Linear(dims[-1], g)
+        self.gnn = OverlapAttention(g, cfg.num_heads, cfg.dgcnn_k, cfg.attention)
+        self.proj_gnn = nn.Linear(g, g)
+        self.proj_score = nn.Linear(g, 1)
+        self.epsilon = nn.Parameter(torch.tensor(-5.0))
+
+        dec: list[nn.Module] = []
+        x_dim = g + 2
+        for j, level in enumerate(range(L - 1, 0, -1)):
+            dec.append(NearestUpsampleBlock(level))
+            in_dim = x_dim + self.skip_dims[level - 1]
+            if level - 1 == 0:
+                dec.append(LastUnaryBlock(in_dim, cfg.final_dim + 2))
+            else:
+                x_dim = (g + 2) // 2 ** (j + 1)
+                dec.append(UnaryBlock(in_dim, x_dim))
+        self.decoder = nn.ModuleList(dec)
+
+    def forward(self, feats: torch.Tensor, pyr: TensorPyramid) -> PredatorOutput:
+        """feats (N0, in_dim) for the stacked level-0 points of ``pyr`` -> per-point outputs."""
+        if feats.shape[1] != self.cfg.in_dim:
+            raise ValueError(f"features have {feats.shape[1]} channels, the model expects in_dim={self.cfg.in_dim}")
+        x = feats
+        skips = []
+        for i, block in enumerate(self.encoder):
+            if i in self.skip_before:
+                skips.append(x)
+            x = block(x, pyr)
+
+        # bottleneck: overlap attention between the two fragments' coarse points
+        ns, _ = pyr.split(-1)
+        xyz = pyr.points[-1]
+        x = self.bottle(x)
+        src, tgt = self.gnn(xyz[:ns], xyz[ns:], x[:ns], x[ns:])
+        x = self.proj_gnn(torch.cat([src, tgt], 0))
+        score_c = self.proj_score(x)  # (Nc, 1)
+        xn = F.normalize(x, p=2, dim=1)
+        sim = xn[:ns] @ xn[ns:].t()
+        temperature = torch.exp(self.epsilon) + 0.03
+        s_src = torch.softmax(sim / temperature, dim=1) @ score_c[ns:]
+        s_tgt = torch.softmax(sim.t() / temperature, dim=1) @ score_c[:ns]
+        x = torch.cat([score_c, torch.cat([s_src, s_tgt], 0), x], dim=1)
+
+        for block in self.decoder:
+            if isinstance(block, NearestUpsampleBlock):
+                x = block(x, pyr)
+                x = torch.cat([x, skips.pop()], dim=1)
+            else:
+                x = block(x, pyr)
+        d = self.cfg.final_dim
+        desc = F.normalize(x[:, :d], p=2, dim=1)
+        ov_logit, m_logit = x[:, d], x[:, d + 1]
+        return PredatorOutput(desc, torch.sigmoid(ov_logit), torch.sigmoid(m_logit), ov_logit, m_logit)
+
+
+def build_predator(cfg: Mapping[str, Any] | PredatorConfig, in_dim: int | None = None) -> Predator:
+    """Predator from a config mapping (``conf/model/predator.yaml``) or a :class:`PredatorConfig`."""
+    if isinstance(cfg, PredatorConfig):
+        c = cfg if in_dim is None else PredatorConfig(**{**asdict(cfg), "in_dim": in_dim})
+    else:
+        c = PredatorConfig.from_mapping(cfg, **({"in_dim": in_dim} if in_dim is not None else {}))
+    return Predator(c)

@@ -1,0 +1,282 @@
+"""Training and inference entry points of the models stage.
+
+* :func:`train` ``(cfg, data_root=None, out_dir=None, logger=None, device=None, datamodule=None,
+  lifter=None) -> {"checkpoint", "last_checkpoint", "history", "metrics", "neighbor_limits"}``: trains
+  the Lightning module described by a root config (nodes ``model``, ``trainer``, ``data.root``,
+  ``seed`` and, for color, ``projection``/``features``/``encoder2d``/``matcher2d``); ``checkpoint``
+  is the best checkpoint (the last one when no validation ran). Checkpoints go to
+  ``<out_dir>/checkpoints`` (``last.ckpt``, ``best.ckpt``); a run whose ``last.ckpt`` exists resumes
+  from it (the contract of :func:`pcrcg.pipeline.train_model`).
+* :func:`load_module` ``(checkpoint, device=None) -> PCRCGModule`` in eval mode.
+* :func:`infer` ``(checkpoint_or_module, root, split, device=None, max_pairs=None) -> Iterator[PairOutput]``:
+  per-pair outputs on a benchmark (``3DMatch``/``3DLoMatch``) or split, each fragment in its own frame.
+* :func:`infer_clouds` ``(module, src_points, tgt_points, src_views=(), tgt_views=()) -> PairOutput``:
+  the same for two user clouds.
+* :func:`save_pair_output` / :func:`load_pair_output`: one ``.npz`` per pair.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger, Logger
+from omegaconf import DictConfig, OmegaConf
+
+from pcrcg.errors import ConfigError
+from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
+from pcrcg.models.module import FragmentOutput, PairOutput, PCRCGModule, build_lifter_from
+
+LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
+
+
+def _container(node: Any) -> Any:
+    if isinstance(node, DictConfig):
+        return OmegaConf.to_container(node, resolve=True)
+    return copy.deepcopy(node)
+
+
+def _get(cfg: Any, key: str, default: Any = None) -> Any:
+    if isinstance(cfg, DictConfig):
+        v = OmegaConf.select(cfg, key, default=default)
+        return _container(v)
+    node = cfg
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return default
+        node = node[part]
+    return copy.deepcopy(node)
+
+
+def lifting_section(cfg: Any) -> dict[str, Any] | None:
+    """The nodes the projection module is built from, or None when the config has none."""
+    out = {k: _get(cfg, k) for k in LIFTING_NODES if _get(cfg, k) is not None}
+    return out or None
+
+
+def _checkpoint_dir(out_dir: Path) -> Path:
+    return out_dir / "checkpoints"
+
+
+class SaveLastOnException(Callback):
+    """Writes ``last.ckpt`` when training stops on an exception or Ctrl-C, so the run resumes from
+    where it stopped (Lightning's ``OnExceptionCheckpoint`` deletes its file at teardown)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        if trainer.global_step > 0:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            trainer.save_checkpoint(str(self.path))
+
+
+def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
+                  extra_callbacks: Sequence[Callback] = ()) -> tuple[L.Trainer, ModelCheckpoint, ModelCheckpoint]:
+    """The Lightning trainer with last/best/on-exception checkpoints; returns (trainer, last_cb, best_cb)."""
+    ckdir = _checkpoint_dir(out_dir)
+    every = tcfg.get("checkpoint_every_n_steps") or None
+    last_cb = ModelCheckpoint(dirpath=ckdir, filename="step{step}", save_top_k=0, save_last=True,
+                              every_n_train_steps=every, save_on_train_epoch_end=True)
+    best_cb = ModelCheckpoint(dirpath=ckdir, filename="best", monitor=tcfg.get("monitor", "val/circle_loss"),
+                              mode=tcfg.get("monitor_mode", "min"), save_top_k=1, save_last=False,
+                              enable_version_counter=False, auto_insert_metric_name=False)
+    exc_cb = SaveLastOnException(ckdir / "last.ckpt")
+    if logger is None:
+        logger = CSVLogger(str(out_dir), name="logs", version="") if tcfg.get("csv_logger", True) else False
+    callbacks: list[Callback] = [last_cb, best_cb, exc_cb, *extra_callbacks]
+    if logger:
+        from lightning.pytorch.callbacks import LearningRateMonitor
+
+        callbacks.append(LearningRateMonitor(logging_interval="epoch"))
+    max_steps = tcfg.get("max_steps")
+    trainer = L.Trainer(
+        default_root_dir=str(out_dir),
+        accelerator=tcfg.get("accelerator", "auto"),
+        devices=tcfg.get("devices", 1),
+        precision=tcfg.get("precision", "32-true"),
+        max_epochs=tcfg.get("max_epochs", 1),
+        max_steps=-1 if max_steps in (None, 0) else int(max_steps),
+        limit_train_batches=tcfg.get("limit_train_batches") or 1.0,
+        limit_val_batches=tcfg.get("limit_val_batches") if tcfg.get("limit_val_batches") is not None else 1.0,
+        val_check_interval=tcfg.get("val_check_interval") or 1.0,
+        check_val_every_n_epoch=tcfg.get("check_val_every_n_epoch", 1),
+        log_every_n_steps=int(tcfg.get("log_every_n_steps", 5)),
+        num_sanity_val_steps=0,
+        gradient_clip_val=tcfg.get("gradient_clip_val"),
+        enable_progress_bar=bool(tcfg.get("progress_bar", True)),
+        enable_model_summary=False,
+        logger=logger,
+        callbacks=callbacks,
+    )
+    return trainer, last_cb, best_cb
+
+
+class HistoryCallback(Callback):
+    """Keeps the logged curves in memory: ``{name: [(step, value), ...]}`` (train every logging step,
+    val every validation)."""
+
+    def __init__(self) -> None:
+        self.history: dict[str, list[tuple[int, float]]] = {}
+
+    def _take(self, trainer: L.Trainer, prefix: str) -> None:
+        step = int(trainer.global_step)
+        for k, v in trainer.callback_metrics.items():
+            if k.startswith(prefix) and not k.endswith("_step"):
+                try:
+                    val = float(v)
+                except (TypeError, ValueError):
+                    continue
+                curve = self.history.setdefault(k, [])
+                if not curve or curve[-1][0] != step:
+                    curve.append((step, val))
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        if trainer.global_step % max(1, trainer.log_every_n_steps) == 0:
+            self._take(trainer, "train/")
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.sanity_checking:
+            self._take(trainer, "val/")
+
+
+def _accelerator(device: str | None, tcfg: Mapping[str, Any]) -> dict[str, Any]:
+    if device in (None, "", "auto"):
+        return dict(tcfg)
+    dev = str(device)
+    acc = "gpu" if dev.startswith("cuda") else dev
+    return {**tcfg, "accelerator": acc}
+
+
+def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | None = None,
+          logger: Logger | Sequence[Logger] | bool | None = None, device: str | None = None,
+          datamodule: PairDataModule | None = None, lifter: torch.nn.Module | None = None,
+          callbacks: Sequence[Callback] = ()) -> dict[str, Any]:
+    """Train (or resume) the model of a root config.
+
+    ``data_root`` overrides ``cfg.data.root``; ``out_dir`` overrides ``cfg.trainer.dir`` (default
+    ``outputs/train``); ``logger``: Lightning logger(s) (default: CSV curves in ``out_dir/logs``);
+    ``device``: ``cpu`` / ``cuda`` / ``auto``. Returns ``{"checkpoint": best (or last) checkpoint path,
+    "last_checkpoint", "history": {name: [(step, value)]} (empty when a logger was given: it has
+    the curves), "metrics": summary numbers}``.
+    """
+    t0 = time.perf_counter()
+    mcfg = _get(cfg, "model")
+    tcfg = _accelerator(device, _get(cfg, "trainer") or {})
+    if not mcfg:
+        raise ConfigError("model", None, "a model config node (conf/model/predator.yaml)")
+    if mcfg.get("name", "predator") != "predator":
+        raise ConfigError("model.name", mcfg.get("name"), "predator")
+    out = Path(out_dir or tcfg.get("dir") or "outputs/train")
+    out.mkdir(parents=True, exist_ok=True)
+    L.seed_everything(int(_get(cfg, "seed", 0) or 0), workers=True, verbose=False)
+
+    lifting = lifting_section(cfg)
+    lifter = lifter if lifter is not None else build_lifter_from(lifting)
+    n_views = int(lifter.cfg.n_views_needed) if lifter is not None and hasattr(lifter, "cfg") else 0
+    match_fn = lifter.match if lifter is not None and getattr(lifter.cfg, "projection", "") == "explicit" else None
+    if datamodule is None:
+        root = data_root if data_root is not None else _get(cfg, "data.root")
+        datamodule = PairDataModule.from_config(root, mcfg, tcfg, n_views=n_views, match_fn=match_fn)
+    datamodule.setup("fit")
+    mcfg["neighbor_limits"] = list(datamodule.limits or ())
+    module = PCRCGModule(mcfg, optim=tcfg.get("optim"), lifting=lifting, lifter=lifter)
+
+    hist = HistoryCallback()
+    external_logger = logger not in (None, False)
+    trainer, last_cb, best_cb = build_trainer(tcfg, out, logger, [hist, *callbacks])
+    last = _checkpoint_dir(out) / "last.ckpt"
+    ckpt = str(last) if tcfg.get("resume", True) and last.is_file() else None
+    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    best = best_cb.best_model_path
+    metrics = {"train/global_step": float(trainer.global_step), "train/epochs": float(trainer.current_epoch),
+               "train/seconds": time.perf_counter() - t0, "train/skipped_pairs": float(module.skipped_pairs),
+               "train/in_dim": float(module.in_dim)}
+    if best_cb.best_model_score is not None:
+        metrics[f"best/{best_cb.monitor}"] = float(best_cb.best_model_score)
+    return {"checkpoint": best if best and Path(best).is_file() else str(last), "last_checkpoint": str(last),
+            "history": {} if external_logger else hist.history, "metrics": metrics,
+            "neighbor_limits": list(datamodule.limits or ())}
+
+
+# --------------------------------------------------------------------------- inference
+
+
+def load_module(checkpoint: str | Path, device: str | torch.device | None = None) -> PCRCGModule:
+    """The trained module in eval mode. A 2D encoder is rebuilt without its pretrained file (its
+    trained weights are in the checkpoint), so inference needs nothing but the checkpoint."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ConfigError("checkpoint", str(path), "an existing Lightning checkpoint file")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    hp = ckpt.get("hyper_parameters", {})
+    lifting = copy.deepcopy(hp.get("lifting"))
+    if lifting and lifting.get("encoder2d"):
+        lifting["encoder2d"] = {**lifting["encoder2d"], "name": "scratch", "weights": None}
+    module = PCRCGModule(hp["model"], optim=hp.get("optim"), lifting=lifting)
+    module.load_state_dict(ckpt["state_dict"])
+    dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return module.to(dev).eval()
+
+
+def inference_datamodule(module: PCRCGModule, root: str | Path | None, **kw: Any) -> PairDataModule:
+    """A data module with the module's own voxel size, levels and neighbour limits."""
+    m = module.hparams["model"]
+    n_views = int(module.lifter.cfg.n_views_needed) if module.lifter is not None else 0
+    match_fn = module.lifter.match if module.lifter is not None and module.lifter.cfg.projection == "explicit" else None
+    dm = PairDataModule(root=root, n_views=n_views, voxel_size=m["voxel_size"], num_layers=m["num_layers"],
+                        conv_radius=m.get("conv_radius", 2.5), max_points=m.get("max_points", 30000),
+                        overlap_radius=(m.get("loss") or {}).get("overlap_radius", 1.5),
+                        neighbor_limits=m.get("neighbor_limits"), match_fn=match_fn, **kw)
+    if dm.limits is None:
+        dm.setup("predict")
+    return dm
+
+
+def infer(model: str | Path | PCRCGModule, root: str | Path, split: str, device: str | torch.device | None = None,
+          max_pairs: int | None = None, progress: bool = True) -> Iterator[PairOutput]:
+    """Per-pair outputs (each fragment in its own frame) for ``split`` of the data set at ``root``."""
+    from tqdm import tqdm
+
+    module = model if isinstance(model, PCRCGModule) else load_module(model, device)
+    module.eval()
+    dm = inference_datamodule(module, root)
+    ds = dm.dataset(split)
+    collate = dm.collate(train=False)
+    n = len(ds) if max_pairs is None else min(len(ds), max_pairs)
+    for k in tqdm(range(n), desc=f"infer {split}", disable=not progress):
+        batch = collate([ds[k]]).to(module.device)
+        yield module.predict_pair(batch)
+
+
+def infer_clouds(module: PCRCGModule, src_points: np.ndarray, tgt_points: np.ndarray, src_views: Sequence = (),
+                 tgt_views: Sequence = ()) -> PairOutput:
+    """Outputs for two user clouds (any density; subsampled to the model's voxel size)."""
+    dm = inference_datamodule(module, None, datasets={"train": [pair_from_clouds(src_points, tgt_points)]})
+    batch = dm.collate(train=False)([pair_from_clouds(src_points, tgt_points, None, src_views, tgt_views)])
+    return module.eval().predict_pair(batch.to(module.device))
+
+
+def save_pair_output(out: PairOutput, path: str | Path) -> Path:
+    """One ``.npz`` with ``src_*`` / ``tgt_*`` arrays, ``transform`` and the pair's identity."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f"src_{k}": v for k, v in out.src.as_dict().items()}
+    arrays.update({f"tgt_{k}": v for k, v in out.tgt.as_dict().items()})
+    np.savez_compressed(path, transform=out.transform, scene=np.array(out.scene), i=out.i, j=out.j,
+                        color_coverage=out.color_coverage, **arrays)
+    return path
+
+
+def load_pair_output(path: str | Path) -> PairOutput:
+    with np.load(path) as z:
+        frag = lambda p: FragmentOutput(z[f"{p}_points"], z[f"{p}_descriptors"], z[f"{p}_overlap"],  # noqa: E731
+                                        z[f"{p}_matchability"])
+        return PairOutput(str(z["scene"]), int(z["i"]), int(z["j"]), frag("src"), frag("tgt"), z["transform"],
+                          float(z["color_coverage"]))

@@ -1,0 +1,438 @@
+"""One run of ``python -m pcrcg.run``: validate -> skip if done -> prepare -> train -> evaluate -> log.
+
+The stages are plain functions named in the config (``stages.prepare``, ``stages.train``,
+``stages.evaluate``: dotted paths), each taking a :class:`RunContext`:
+
+* ``prepare(ctx) -> Path``: the data set root (3DMatch layout);
+* ``train(ctx) -> TrainOutput``: a checkpoint and training curves (learned methods only);
+* ``evaluate(ctx) -> EvalOutput``: metrics named ``<benchmark>/<metric>_<N>``,
+  ``<benchmark>/rre``, ``<benchmark>/rte``, ``color_coverage`` (recall, IR, FMR in %, RRE in
+  degrees, RTE in metres: the paper's units), files to keep, and the protocol used.
+
+The defaults below call the other stages' library functions, imported lazily so that a
+stage that is not installed fails with a message naming it. Tests swap in fake stages.
+
+Tracking (MLflow, ``logger=mlflow``): a run is tagged with its config hash; when a FINISHED
+run with the same hash exists in the experiment the job is skipped. Any error after the
+config is validated is recorded on the run (FAILED, ``error`` tag, ``error.txt``); a
+:class:`~pcrcg.errors.ConfigError` raised there (a missing weights file) marks the run
+``not_run``. In a multirun the job then returns normally so that the sweep goes on (the
+multirun callback reports failures at the end); a single run re-raises.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+
+from omegaconf import DictConfig, OmegaConf
+
+from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
+from pcrcg.errors import ConfigError, PcrcgError
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, to_plain
+
+if TYPE_CHECKING:  # pragma: no cover
+    from pcrcg.tracking.runs import RunTracker
+
+STATUS_FILE = "pcrcg_status.json"
+# keys whose overrides do not go into a run's name (they are tags or do not change the result)
+NAME_EXCLUDE = ("experiment", "experiment_name", "profile", "hydra", "logger", "runtime", "paths", "stages")
+
+
+class StageUnavailable(PcrcgError, RuntimeError):
+    """A pipeline stage's implementation is not installed / importable."""
+
+
+# --------------------------------------------------------------------------- contracts
+
+
+@dataclass
+class TrainOutput:
+    """What training leaves: the checkpoint file and curves ``{name: [v0, v1, ...]}`` (step = index)
+    or ``{name: [(step, v), ...]}`` when the trainer did not log them itself."""
+
+    checkpoint: Path | None
+    history: dict[str, list] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)
+    artifacts: list[tuple[Path, str | None]] = field(default_factory=list)
+    reused: bool = False
+
+
+@dataclass
+class EvalOutput:
+    """Evaluation results: flat metrics, files to keep ``(path, artifact folder)``, protocol facts
+    (pair counts, RANSAC settings; logged as ``protocol.*`` params)."""
+
+    metrics: dict[str, float]
+    artifacts: list[tuple[Path, str | None]] = field(default_factory=list)
+    protocol: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class JobInfo:
+    """Where a job runs and how it was asked for (from Hydra, or made up by a caller)."""
+
+    output_dir: Path
+    base_dir: Path
+    overrides: list[str] = field(default_factory=list)
+    choices: dict[str, str] = field(default_factory=dict)
+    multirun: bool = False
+    sweep_dir: str | None = None
+    search_dirs: tuple[Path, ...] = (CONF_DIR,)
+
+
+@dataclass
+class RunContext:
+    """What a stage receives."""
+
+    cfg: DictConfig
+    job: JobInfo
+    out_dir: Path
+    device: str
+    data_root: Path | None = None
+    checkpoint: Path | None = None
+    run_id: str | None = None
+    tracker: "RunTracker | None" = None
+
+    def path(self, setting: str) -> Path:
+        """A ``paths.*`` setting made absolute against the folder the command started in."""
+        p = Path(str(OmegaConf.select(self.cfg, f"paths.{setting}")))
+        return p if p.is_absolute() else self.job.base_dir / p
+
+    def lightning_logger(self):
+        """A Lightning ``MLFlowLogger`` writing into this run (None without tracking).
+
+        It neither starts nor ends the run: the pipeline does both.
+        """
+        if self.tracker is None or self.run_id is None:
+            return None
+        return make_lightning_logger(self.tracker.uri, self.cfg.experiment_name, self.run_id)
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int = 0) -> None:
+        if self.tracker is not None and self.run_id is not None:
+            self.tracker.log_metrics(self.run_id, metrics, step)
+
+
+@dataclass
+class RunOutcome:
+    status: str  # finished | skipped | failed | not_run
+    config_hash: str
+    run_name: str
+    run_id: str | None = None
+    tracking_uri: str | None = None
+    metrics: dict[str, float] = field(default_factory=dict)
+    error: str | None = None
+    output_dir: str | None = None
+    seconds: float = 0.0
+
+    def to_json(self) -> str:
+        return json.dumps(self.__dict__, default=str, indent=1)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def run_name(overrides: Sequence[str]) -> str:
+    """What differs: the job's ``key=value`` overrides minus bookkeeping ones (``window_size=7``)."""
+    parts = []
+    for ov in overrides:
+        key = ov.split("=", 1)[0].lstrip("+~")
+        if key.split(".")[0].split("/")[0] in NAME_EXCLUDE:
+            continue
+        parts.append(ov.lstrip("+~"))
+    return " ".join(parts) or "defaults"
+
+
+def method_label(data: Mapping[str, Any]) -> str:
+    """The paper's name for what a run computes: Predator, PCR-CG, FPFH, ICP, ColorICP, SIFT-DLT."""
+    method = data.get("method", "learned")
+    if method == "learned":
+        return "PCR-CG" if color_enabled(data) else "Predator"
+    return {"fpfh": "FPFH", "icp": "ICP", "color_icp": "ColorICP", "sift_dlt": "SIFT-DLT"}.get(method, method)
+
+
+def resolve_device(requested: str | None) -> str:
+    if requested and requested != "auto":
+        return requested
+    try:
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    except ImportError:  # pragma: no cover
+        return "cpu"
+
+
+def _stage(path: str) -> Callable[[RunContext], Any]:
+    from hydra.utils import get_method
+
+    return get_method(path)
+
+
+def _need(module: str, attr: str, stage: str):
+    """Import ``module.attr`` for ``stage`` or fail naming what is missing."""
+    import importlib
+
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as e:
+        raise StageUnavailable(f"stage '{stage}' needs {module}.{attr}, which cannot be imported: {e}") from e
+    fn = getattr(mod, attr, None)
+    if fn is None:
+        raise StageUnavailable(f"stage '{stage}' needs {module}.{attr}, which does not exist")
+    return fn
+
+
+def write_status(out_dir: Path, outcome: RunOutcome) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / STATUS_FILE).write_text(outcome.to_json())
+
+
+def make_lightning_logger(uri: str, experiment_name: str, run_id: str):
+    """Lightning ``MLFlowLogger`` bound to an existing run, with an explicit ``tracking_uri``
+    (it would read ``MLFLOW_TRACKING_URI`` at import time otherwise) and that leaves the
+    run open when training ends."""
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    class _OpenRunMLFlowLogger(MLFlowLogger):
+        def finalize(self, status: str = "success") -> None:  # keep the run open
+            if self._initialized and self._checkpoint_callback:
+                self._scan_and_log_checkpoints(self._checkpoint_callback)
+
+    return _OpenRunMLFlowLogger(experiment_name=experiment_name, tracking_uri=uri, run_id=run_id)
+
+
+# --------------------------------------------------------------------------- default stages
+
+
+def prepare_data(ctx: RunContext) -> Path:
+    """Materialise ``data`` (generated / converted once; reused when up to date)."""
+    prepare_dataset = _need("pcrcg.data.materialise", "prepare_dataset", "prepare")
+    data_cfg = OmegaConf.to_container(ctx.cfg.data, resolve=True)
+    assert isinstance(data_cfg, dict)
+    root = Path(str(data_cfg["root"]))
+    if not root.is_absolute():
+        data_cfg["root"] = str(ctx.job.base_dir / root)
+    return Path(prepare_dataset(data_cfg, seed=int(ctx.cfg.data_seed)))
+
+
+def train_model(ctx: RunContext) -> TrainOutput:
+    """Train the learned model, or reuse the checkpoint of an identical training config.
+
+    Checkpoints are cached under ``paths.checkpoints/<train hash>/`` (the hash leaves out
+    evaluation-only settings), so sweeps over evaluation settings train once.
+    """
+    key = config_hash(ctx.cfg, TRAIN_HASH_EXCLUDE)
+    cache = ctx.path("checkpoints") / key
+    ckpt = cache / "model.ckpt"
+    hist_file = cache / "history.json"
+    if ckpt.is_file() and bool(OmegaConf.select(ctx.cfg, "runtime.reuse_checkpoints", default=True)):
+        history = json.loads(hist_file.read_text()) if hist_file.is_file() else {}
+        print(f"[run] reusing checkpoint {ckpt} (same training config {key})")
+        return TrainOutput(checkpoint=ckpt, history=history, reused=True)
+    train = _need("pcrcg.models.train", "train", "train")
+    cache.mkdir(parents=True, exist_ok=True)
+    result = train(ctx.cfg, data_root=ctx.data_root, out_dir=ctx.out_dir / "train",
+                   logger=ctx.lightning_logger(), device=ctx.device)
+    out = result if isinstance(result, TrainOutput) else TrainOutput(checkpoint=Path(result["checkpoint"]),
+                                                                    history=dict(result.get("history", {})),
+                                                                    metrics=dict(result.get("metrics", {})))
+    if out.checkpoint is not None and Path(out.checkpoint).is_file():
+        tmp = cache / f"model.ckpt.tmp-{os.getpid()}"
+        tmp.write_bytes(Path(out.checkpoint).read_bytes())
+        os.replace(tmp, ckpt)
+        hist_file.write_text(json.dumps(out.history))
+        out.checkpoint = ckpt
+    return out
+
+
+def evaluate_method(ctx: RunContext) -> EvalOutput:
+    """Evaluate on both benchmarks at every sample size (learned) or run a classical baseline."""
+    evaluate = _need("pcrcg.evaluation.run", "evaluate", "evaluate")
+    result = evaluate(ctx.cfg, data_root=ctx.data_root, checkpoint=ctx.checkpoint,
+                      out_dir=ctx.out_dir / "eval", device=ctx.device)
+    if isinstance(result, EvalOutput):
+        return result
+    return EvalOutput(metrics=dict(result["metrics"]),
+                      artifacts=[(Path(p), a) for p, a in result.get("artifacts", [])],
+                      protocol=dict(result.get("protocol", {})))
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def needs_training(cfg: DictConfig) -> bool:
+    return cfg.method == "learned" or (cfg.method in CLASSICAL_METHODS and cfg.icp_init == "learned")
+
+
+def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
+    """Run one configured job end to end (see module docstring). Returns what happened."""
+    t0 = time.perf_counter()
+    validate_run_config(cfg, job.choices, job.search_dirs)
+    h = config_hash(cfg)
+    name = run_name(job.overrides)
+    job.output_dir.mkdir(parents=True, exist_ok=True)
+    data = to_plain(cfg)
+
+    tracker = None
+    if cfg.logger.name == "mlflow":
+        from pcrcg.tracking.runs import RunTracker
+        from pcrcg.tracking.store import resolve_tracking_uri
+
+        uri = resolve_tracking_uri(cfg.logger.tracking_uri, job.base_dir)
+        tracker = RunTracker(uri, cfg.experiment_name)
+        if cfg.logger.skip_finished:
+            done = tracker.find_finished(h)
+            if done is not None:
+                outcome = RunOutcome("skipped", h, name, done.run_id, uri, output_dir=str(job.output_dir))
+                write_status(job.output_dir, outcome)
+                print(f"[run] skipped {name!r}: run {done.run_id} with config hash {h} already FINISHED "
+                      f"in experiment {cfg.experiment_name!r}")
+                return outcome
+
+    run_id = None
+    if tracker is not None:
+        run_id = tracker.start(name, _tags(cfg, data, h, job))
+        tracker.log_params(run_id, flat_params(cfg))
+        _log_config_files(tracker, run_id, cfg, job)
+
+    ctx = RunContext(cfg=cfg, job=job, out_dir=job.output_dir, device=resolve_device(OmegaConf.select(cfg, "runtime.device")),
+                     run_id=run_id, tracker=tracker)
+    timings: dict[str, float] = {}
+    try:
+        preflight(cfg)
+        t = time.perf_counter()
+        ctx.data_root = Path(_stage(cfg.stages.prepare)(ctx))
+        timings["time/prepare_s"] = time.perf_counter() - t
+        if needs_training(cfg):
+            t = time.perf_counter()
+            trained = _stage(cfg.stages.train)(ctx)
+            timings["time/train_s"] = time.perf_counter() - t
+            ctx.checkpoint = trained.checkpoint
+            _log_training(ctx, trained)
+        t = time.perf_counter()
+        result: EvalOutput = _stage(cfg.stages.evaluate)(ctx)
+        timings["time/evaluate_s"] = time.perf_counter() - t
+        metrics = {k: float(v) for k, v in result.metrics.items() if v is not None}
+        _write_outputs(ctx, metrics, result, h)
+        timings["time/total_s"] = time.perf_counter() - t0
+        if tracker is not None and run_id is not None:
+            tracker.log_metrics(run_id, {**metrics, **timings})
+            tracker.log_params(run_id, {f"protocol.{k}": v for k, v in _flat(result.protocol).items()})
+            for path, folder in result.artifacts:
+                tracker.log_artifact(run_id, path, folder)
+            for f in ("metrics.json", "plots"):
+                tracker.log_artifact(run_id, ctx.out_dir / f, None if f == "metrics.json" else f)
+            tracker.finish(run_id)
+        outcome = RunOutcome("finished", h, name, run_id, tracker.uri if tracker else None, metrics,
+                             output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
+    except KeyboardInterrupt:
+        if tracker is not None and run_id is not None:
+            tracker.client.set_terminated(run_id, "KILLED")
+        raise
+    except Exception as e:  # noqa: BLE001 - recorded, then re-raised or reported by the sweep
+        not_run = isinstance(e, ConfigError)
+        if tracker is not None and run_id is not None:
+            tracker.fail(run_id, e, not_run=not_run)
+        outcome = RunOutcome("not_run" if not_run else "failed", h, name, run_id, tracker.uri if tracker else None,
+                             error=f"{type(e).__name__}: {e}", output_dir=str(job.output_dir),
+                             seconds=time.perf_counter() - t0)
+        write_status(job.output_dir, outcome)
+        print(f"[run] {outcome.status} {name!r}: {outcome.error}", file=sys.stderr)
+        if not job.multirun:
+            raise
+        return outcome
+    write_status(job.output_dir, outcome)
+    _print_where(cfg, outcome)
+    return outcome
+
+
+def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dict[str, str]:
+    from pcrcg.tracking.git import git_info
+    from pcrcg.tracking.runs import TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE
+
+    sha, dirty = git_info()
+    tags = {
+        TAG_EXPERIMENT: str(cfg.experiment_name),
+        TAG_HASH: h,
+        TAG_GIT: sha,
+        "git_dirty": str(dirty).lower(),
+        TAG_PROFILE: str(OmegaConf.select(cfg, "profile.name", default="?")),
+        "method": str(cfg.method),
+        "label": method_label(data),
+        "overrides": " ".join(job.overrides),
+        "mlflow.source.git.commit": sha,
+    }
+    if job.sweep_dir:
+        tags["sweep_dir"] = job.sweep_dir
+    return tags
+
+
+def _log_config_files(tracker: "RunTracker", run_id: str, cfg: DictConfig, job: JobInfo) -> None:
+    """Resolved config and overrides (and Hydra's own .hydra/ files when present) as artifacts."""
+    cdir = job.output_dir / "config"
+    cdir.mkdir(parents=True, exist_ok=True)
+    (cdir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (cdir / "overrides.yaml").write_text("".join(f"- {o}\n" for o in job.overrides) or "[]\n")
+    tracker.log_artifact(run_id, cdir, "config")
+    hydra_dir = job.output_dir / ".hydra"
+    if hydra_dir.is_dir():
+        tracker.log_artifact(run_id, hydra_dir, "config/hydra")
+
+
+def _log_training(ctx: RunContext, trained: TrainOutput) -> None:
+    if ctx.tracker is None or ctx.run_id is None:
+        return
+    if trained.history:
+        ctx.tracker.log_history(ctx.run_id, trained.history)
+    if trained.metrics:
+        ctx.tracker.log_metrics(ctx.run_id, trained.metrics)
+    if trained.reused:
+        ctx.tracker.set_tags(ctx.run_id, {"checkpoint_reused": str(trained.checkpoint)})
+    if trained.checkpoint is not None and bool(ctx.cfg.logger.log_checkpoint):
+        ctx.tracker.log_artifact(ctx.run_id, trained.checkpoint, "checkpoint")
+    for path, folder in trained.artifacts:
+        ctx.tracker.log_artifact(ctx.run_id, path, folder)
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _write_outputs(ctx: RunContext, metrics: Mapping[str, float], result: EvalOutput, h: str) -> None:
+    """``metrics.json`` and ``plots/recall_vs_points.png`` in the job's output folder."""
+    (ctx.out_dir / "metrics.json").write_text(json.dumps(
+        {"config_hash": h, "metrics": metrics, "protocol": result.protocol}, indent=1, default=str))
+    try:
+        from pcrcg.report.plots import plot_run_recall
+
+        plot_run_recall(metrics, ctx.out_dir / "plots" / "recall_vs_points.png",
+                        title=f"{ctx.cfg.experiment_name}: {run_name(ctx.job.overrides)}")
+    except ImportError:  # pragma: no cover - matplotlib missing
+        pass
+
+
+def _print_where(cfg: DictConfig, outcome: RunOutcome) -> None:
+    lines = [f"[run] finished {outcome.run_name!r} in {outcome.seconds:.1f} s (config hash {outcome.config_hash})"]
+    for key in sorted(outcome.metrics):
+        if key.endswith(("rr_5000", "rr_1000", "rr_250")) or key == "color_coverage":
+            v = outcome.metrics[key]
+            lines.append(f"      {key} = {v:.2f}" if not math.isnan(v) else f"      {key} = nan")
+    lines.append(f"      outputs: {outcome.output_dir}")
+    if outcome.tracking_uri:
+        from pcrcg.tracking.store import ui_command
+
+        lines.append(f"      MLflow run {outcome.run_id} in experiment {cfg.experiment_name!r}")
+        lines.append(f"      open the UI: {ui_command(outcome.tracking_uri)}")
+    print("\n".join(lines))

@@ -1,0 +1,146 @@
+"""Predator's registration of a pair from per-point network outputs.
+
+For one pair and one N: sample N points per fragment by ``overlap x matchability``
+(:mod:`pcrcg.registration.sampling`), match their descriptors by nearest neighbour (optionally
+mutual, :mod:`pcrcg.registration.matching`), and estimate the transform with RANSAC
+(:mod:`pcrcg.registration.ransac`, ours or Open3D's).
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field, fields
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from pcrcg.errors import ConfigError
+from pcrcg.registration.matching import match_descriptors
+from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d
+from pcrcg.registration.sampling import SAMPLING_MODES, sample_indices
+
+BACKENDS = ("torch", "open3d")
+DEFAULT_N_POINTS = (5000, 2500, 1000, 500, 250)
+
+
+@dataclass
+class FragmentOutput:
+    """What the network gives for one fragment of a pair.
+
+    points (N, 3) float32 in the fragment's own frame; descriptors (N, D) float32;
+    overlap (N,) and matchability (N,) scores in [0, 1].
+    """
+
+    points: np.ndarray
+    descriptors: np.ndarray
+    overlap: np.ndarray
+    matchability: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.points = _np(self.points, np.float32)
+        self.descriptors = _np(self.descriptors, np.float32)
+        self.overlap = _np(self.overlap, np.float32).reshape(-1)
+        self.matchability = _np(self.matchability, np.float32).reshape(-1)
+        n = len(self.points)
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise ValueError(f"points must be (N, 3), got {self.points.shape}")
+        if self.descriptors.ndim != 2 or len(self.descriptors) != n:
+            raise ValueError(f"descriptors must be ({n}, D), got {self.descriptors.shape}")
+        if len(self.overlap) != n or len(self.matchability) != n:
+            raise ValueError(f"overlap and matchability must be ({n},), got {self.overlap.shape} and {self.matchability.shape}")
+
+    def scores(self) -> np.ndarray:
+        """(N,) sampling scores: overlap x matchability."""
+        return self.overlap * self.matchability
+
+
+def _np(x, dtype) -> np.ndarray:
+    if torch.is_tensor(x):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=dtype)
+
+
+@dataclass
+class RegistrationConfig:
+    """Settings of Predator's registration (the ``registration`` config group).
+
+    sampling: ``prob`` | ``topk`` | ``random``; mutual: mutual nearest neighbours only (falls back
+    to all matches when fewer than ``3 * ransac_n`` survive, like Open3D); backend: ``torch``
+    (ours) | ``open3d`` (reference); device: torch device of matching and RANSAC.
+    """
+
+    sampling: str = "prob"
+    mutual: bool = False
+    backend: str = "torch"
+    device: str = "cpu"
+    n_points: tuple[int, ...] = DEFAULT_N_POINTS
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+
+    def __post_init__(self) -> None:
+        if self.sampling not in SAMPLING_MODES:
+            raise ConfigError("registration.sampling", self.sampling, " | ".join(SAMPLING_MODES))
+        if self.backend not in BACKENDS:
+            raise ConfigError("registration.backend", self.backend, " | ".join(BACKENDS))
+        self.n_points = tuple(int(n) for n in self.n_points)
+        if not self.n_points or min(self.n_points) < 3:
+            raise ConfigError("registration.n_points", list(self.n_points), "a non-empty list of integers >= 3")
+        if isinstance(self.ransac, Mapping):
+            self.ransac = RansacConfig.from_dict(dict(self.ransac))
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "RegistrationConfig":
+        """From the ``registration`` config node (extra keys of other sections are ignored)."""
+        names = {f.name for f in fields(cls)}
+        kw = {k: d[k] for k in d if k in names}
+        if "ransac" in kw:
+            kw["ransac"] = RansacConfig.from_dict(dict(kw["ransac"]))
+        if "n_points" in kw:
+            kw["n_points"] = tuple(kw["n_points"])
+        return cls(**kw)
+
+
+@dataclass
+class FeatureRegistration:
+    """Result of :func:`register_features`.
+
+    transform (4, 4) maps source into target; src_idx (n,) / tgt_idx (m,) the sampled point
+    indices; correspondences (K, 2) indices into the *full* fragments (source, target).
+    """
+
+    transform: np.ndarray
+    src_idx: np.ndarray
+    tgt_idx: np.ndarray
+    correspondences: np.ndarray
+    ransac: RansacResult
+
+
+def pair_seed(seed: int, scene: str, i: int, j: int, n_points: int) -> np.random.SeedSequence:
+    """A seed that depends only on (seed, pair, N), never on the order pairs are processed in."""
+    return np.random.SeedSequence([int(seed) & 0xFFFFFFFF, zlib.crc32(scene.encode()), int(i), int(j), int(n_points)])
+
+
+def register_features(
+    src: FragmentOutput,
+    tgt: FragmentOutput,
+    n_points: int,
+    cfg: RegistrationConfig | None = None,
+    seed: int | np.random.SeedSequence = 0,
+) -> FeatureRegistration:
+    """Register one pair: sample ``n_points`` per fragment, match, RANSAC."""
+    cfg = cfg or RegistrationConfig()
+    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
+    s_sample, s_ransac = ss.spawn(2)
+    rng = np.random.default_rng(s_sample)
+    src_idx = sample_indices(src.scores(), n_points, cfg.sampling, rng)
+    tgt_idx = sample_indices(tgt.scores(), n_points, cfg.sampling, rng)
+    sp, tp = src.points[src_idx], tgt.points[tgt_idx]
+    corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=cfg.mutual, device=cfg.device)
+    if cfg.mutual and len(corr) < 3 * cfg.ransac.ransac_n:
+        corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=False, device=cfg.device)
+    if cfg.backend == "torch":
+        res = ransac(sp, tp, corr, cfg.ransac, seed=np.random.default_rng(s_ransac), device=cfg.device)
+    else:
+        res = ransac_open3d(sp, tp, corr, cfg.ransac, seed=int(s_ransac.generate_state(1)[0] & 0x7FFFFFFF))
+    full = np.stack([src_idx[corr[:, 0]], tgt_idx[corr[:, 1]]], 1) if len(corr) else np.zeros((0, 2), np.int64)
+    return FeatureRegistration(res.transform, src_idx, tgt_idx, full, res)

@@ -1,0 +1,170 @@
+"""Generated paper tables: ``python -m pcrcg.report [out_dir=reports/] [profile=cpu] [tables=[window_size]]``.
+
+Reads the runs of the MLflow store (same resolution as ``pcrcg.run``), fills every table
+spec of ``conf/report.yaml`` and writes ``<out_dir>/<table>.{md,tex,csv}``, the figures
+``<table>_recall.png`` / ``<table>_coverage.png`` and ``<out_dir>/README.md`` (all tables,
+protocol per benchmark, seeds, how well our trends follow the paper's).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from pcrcg.errors import ConfigError
+from pcrcg.report.plots import plot_coverage, plot_table_recall
+from pcrcg.report.render import to_latex, to_markdown, write_csv
+from pcrcg.report.runs import load_runs, newest_profile
+from pcrcg.report.spec import TableSpec, parse_specs
+from pcrcg.report.tables import FilledTable, fill_table, load_paper, trend_agreement
+
+__all__ = ["ReportResult", "generate_report", "tables_for_experiment"]
+
+
+@dataclass
+class ReportResult:
+    out_dir: Path
+    tracking_uri: str
+    files: list[Path] = field(default_factory=list)
+    tables: dict[str, FilledTable] = field(default_factory=dict)
+
+    @property
+    def index(self) -> Path:
+        return self.out_dir / "README.md"
+
+
+def _plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    if isinstance(cfg, DictConfig):
+        data = OmegaConf.to_container(cfg, resolve=True)
+        assert isinstance(data, dict)
+        data.pop("hydra", None)
+        return data
+    return dict(cfg)
+
+
+def tables_for_experiment(specs: Mapping[str, TableSpec], experiment: str) -> list[str]:
+    """Names of the tables whose main experiment is ``experiment``."""
+    return [n for n, s in specs.items() if s.experiment == experiment]
+
+
+def _select(specs: Mapping[str, TableSpec], tables: Any) -> list[str]:
+    if tables in (None, "all"):
+        return list(specs)
+    names = [tables] if isinstance(tables, str) else list(tables)
+    for n in names:
+        if n not in specs:
+            raise ConfigError("tables", n, "all or a list of " + ", ".join(specs))
+    return names
+
+
+def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.PathLike | None = None,
+                    command: str | None = None) -> ReportResult:
+    """Write the report described by ``cfg`` (the ``conf/report.yaml`` node). See module docstring."""
+    from pcrcg.tracking.store import resolve_tracking_uri
+
+    c = _plain(cfg)
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    specs = parse_specs(c["specs"])
+    names = _select(specs, c.get("tables", "all"))
+    out_dir = Path(str(c.get("out_dir") or "reports"))
+    out_dir = out_dir if out_dir.is_absolute() else base / out_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    uri = resolve_tracking_uri(c.get("tracking_uri"), base)
+    experiments = sorted({e for n in names for e in specs[n].experiments})
+    runs = load_runs(uri, experiments)
+    paper = load_paper(c.get("paper_csv"))
+    wanted = _profile_name(c.get("profile"))
+    profiles = {e: wanted or newest_profile(runs, e) for e in experiments}
+
+    result = ReportResult(out_dir, uri)
+    for name in names:
+        table = fill_table(specs[name], runs, paper, profiles)
+        result.tables[name] = table
+        for suffix, text in (("md", to_markdown(table)), ("tex", to_latex(table))):
+            p = out_dir / f"{name}.{suffix}"
+            p.write_text(text)
+            result.files.append(p)
+        write_csv(table, out_dir / f"{name}.csv")
+        result.files.append(out_dir / f"{name}.csv")
+        for fn, suffix in ((plot_table_recall, "recall"), (plot_coverage, "coverage")):
+            p = fn(table, out_dir / f"{name}_{suffix}.png")
+            if p is not None:
+                result.files.append(p)
+    result.index.write_text(_index(result, runs, experiments, profiles, command))
+    result.files.append(result.index)
+    return result
+
+
+def _profile_name(node: Any) -> str | None:
+    """``profile`` of the report config: a profile group node (``{name: ...}``), a name, or None."""
+    if isinstance(node, Mapping):
+        return node.get("name")
+    return str(node) if node else None
+
+
+def _store_text(uri: str, base: Path) -> str:
+    from pcrcg.tracking.store import sqlite_path
+
+    db = sqlite_path(uri)
+    if db is not None:
+        try:
+            return f"sqlite:///{db.relative_to(base)}"
+        except ValueError:
+            return uri
+    return uri
+
+
+def _protocol(runs: pd.DataFrame) -> list[str]:
+    """Protocol facts of the runs: pair counts per benchmark, RANSAC and metric settings, seeds."""
+    if runs.empty:
+        return ["No runs yet."]
+    done = runs[runs["status"] == "FINISHED"]
+    lines = []
+    cols = sorted(c for c in done.columns if c.startswith(("params.protocol.", "params.eval.")))
+    for col in cols:
+        vals = done[col].dropna().astype(str).value_counts()
+        if len(vals):
+            text = ", ".join(f"{v}" + (f" ({n} runs)" if len(vals) > 1 else "") for v, n in vals.items())
+            lines.append(f"- `{col[len('params.'):]}`: {text}")
+    if "params.seed" in done.columns:
+        seeds = sorted(done["params.seed"].dropna().astype(str).unique(), key=lambda s: (len(s), s))
+        lines.append(f"- seeds: {', '.join(seeds)}")
+    if "tags.git_sha" in done.columns:
+        shas = done["tags.git_sha"].dropna().astype(str).str[:7].unique()
+        lines.append(f"- code (git sha): {', '.join(sorted(shas))}")
+    return lines or ["No finished run logged protocol settings."]
+
+
+def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
+           profiles: Mapping[str, str | None], command: str | None) -> str:
+    base = result.out_dir.parent
+    out = ["# PCR-CG tables: ours beside the paper's", ""]
+    out.append(f"Generated by `{command or 'python -m pcrcg.report'}` from the MLflow store "
+               f"`{_store_text(result.tracking_uri, base)}`.")
+    out.append("Open the runs: `mlflow ui --backend-store-uri <store>`; every cell lists its runs "
+               "(run id, config hash, git sha, profile, seed), here and in the CSV files.")
+    out.append("")
+    out.append("| Table | Experiment | Profile | Finished runs | Paper trend kept (row pairs) | Files |")
+    out.append("|---|---|---|---:|---|---|")
+    for name, table in result.tables.items():
+        exp = table.spec.experiment
+        n_done = int(((runs["experiment"] == exp) & (runs["status"] == "FINISHED")).sum()) if not runs.empty else 0
+        t = trend_agreement(table)
+        trend = f"{t['agree']}/{t['pairs']}" if t["pairs"] else "n/a"
+        files = ", ".join(f"[{s}]({name}.{s})" for s in ("md", "tex", "csv"))
+        out.append(f"| {name} | {exp} | {profiles.get(exp) or '—'} | {n_done} | {trend} | {files} |")
+    out += ["", "## Protocol (from the runs' logged settings)", ""]
+    out += _protocol(runs)
+    out.append("")
+    for name, table in result.tables.items():
+        out.append(to_markdown(table))
+        for suffix in ("recall", "coverage"):
+            if (result.out_dir / f"{name}_{suffix}.png").is_file():
+                out.append(f"![{name} {suffix}]({name}_{suffix}.png)")
+                out.append("")
+    return "\n".join(out)

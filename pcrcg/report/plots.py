@@ -1,0 +1,118 @@
+"""Figures: recall against the number of sampled points (per run and per table), color coverage."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Mapping
+
+from pcrcg.report.tables import FilledTable
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+_KEY = re.compile(r"^(?P<bench>[^/]+)/(?P<metric>rr|fmr|ir)_(?P<n>\d+)$")
+
+
+def plot_run_recall(metrics: Mapping[str, float], path: Path, title: str = "") -> Path | None:
+    """One run: RR / FMR / IR (%) against sampled points, one panel per metric, a line per benchmark."""
+    series: dict[str, dict[str, list[tuple[int, float]]]] = {}
+    for key, v in metrics.items():
+        m = _KEY.match(key)
+        if m:
+            series.setdefault(m["metric"], {}).setdefault(m["bench"], []).append((int(m["n"]), float(v)))
+    if not series:
+        return None
+    plt = _plt()
+    names = [m for m in ("rr", "fmr", "ir") if m in series]
+    fig, axes = plt.subplots(1, len(names), figsize=(4 * len(names), 3.2), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        for bench, pts in sorted(series[name].items()):
+            pts.sort()
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=bench)
+        ax.set_xscale("log")
+        ax.set_xlabel("# sampled points")
+        ax.set_ylabel(f"{name.upper()} (%)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
+    """A table's recall against sampled points: ours (solid, ± std) beside the paper (dashed)."""
+    panels: dict[tuple[str, str], list] = {}
+    for c in table.cells:
+        if c.col.n_points is not None and c.col.metric in ("RR", "FMR", "IR"):
+            panels.setdefault((c.col.metric, c.col.benchmark), []).append(c)
+    if not panels:
+        return None
+    plt = _plt()
+    keys = list(panels)
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys), 3.6), squeeze=False)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, key in zip(axes[0], keys):
+        cells = panels[key]
+        for i, row in enumerate(table.spec.rows):
+            rc = sorted((c for c in cells if c.row is row), key=lambda c: c.col.n_points)
+            color = colors[i % len(colors)]
+            ours = [c for c in rc if c.mean is not None]
+            paper = [c for c in rc if c.paper is not None]
+            if ours:
+                ax.errorbar([c.col.n_points for c in ours], [c.mean for c in ours],
+                            yerr=[c.std or 0.0 for c in ours], color=color, marker="o", capsize=2,
+                            label=f"{row.text} (ours)")
+            if paper:
+                ax.plot([c.col.n_points for c in paper], [c.paper for c in paper], color=color,
+                        linestyle="--", marker="x", alpha=0.8, label=f"{row.text} (paper)")
+        ax.set_xscale("log")
+        ax.set_xticks([250, 500, 1000, 2500, 5000])
+        ax.set_xticklabels(["250", "500", "1000", "2500", "5000"])
+        ax.set_xlabel("# sampled points")
+        ax.set_ylabel(f"{key[0]} (%)")
+        ax.set_title(key[1], fontsize=10)
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=7, frameon=False)
+    fig.suptitle(table.spec.title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.08 + 0.03 * (len(labels) // 4), 1, 0.95))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_coverage(table: FilledTable, path: Path) -> Path | None:
+    """Color coverage per row (ours): the fraction of points that received a 2D feature."""
+    if not table.coverage:
+        return None
+    plt = _plt()
+    labels = list(table.coverage)
+    means = [table.coverage[k][0] for k in labels]
+    stds = [table.coverage[k][1] for k in labels]
+    fig, ax = plt.subplots(figsize=(max(3.5, 1.1 * len(labels)), 3.2))
+    ax.bar(range(len(labels)), means, yerr=stds, capsize=3, color="#4c72b0")
+    ax.set_xticks(range(len(labels)))
+    ax.set_xticklabels(labels, rotation=20, ha="right", fontsize=8)
+    ax.set_ylim(0, 1.0)
+    ax.set_ylabel("color coverage")
+    ax.set_title(f"{table.spec.title}: color coverage", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

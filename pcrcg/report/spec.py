@@ -1,0 +1,135 @@
+"""Table specifications: which runs fill which cell of a paper table.
+
+A table (``conf/report.yaml``, ``specs.<name>``) has rows and columns. A cell is the pair
+(row, column); its runs are the FINISHED runs of the row's experiment that match both the
+row's and the column's ``where`` filters (flattened-config params or tags, compared as
+text), and its paper number is the entry of ``paper_tables.csv`` with the table's
+``paper_table`` name, the row's method, the variant of the row or column, and the
+column's benchmark, metric and sample size.
+
+Columns are listed explicitly or as a ``grid`` (metric x benchmark x n_points, in that
+order); the metric also names the table's sections in Markdown/LaTeX.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from pcrcg.errors import ConfigError
+
+# paper metric name -> our metric key templates, tried in order ({b}: benchmark, {n}: sample size)
+METRIC_KEYS: dict[str, tuple[str, ...]] = {
+    "RR": ("{b}/rr_{n}",),
+    "FMR": ("{b}/fmr_{n}",),
+    "IR": ("{b}/ir_{n}",),
+    "RRE_deg": ("{b}/rre_{n}", "{b}/rre"),
+    "RTE_m": ("{b}/rte_{n}", "{b}/rte"),
+}
+# without a sample size (icp_init, sift_dlt): the method's own recall, else the one at 5000 points
+METRIC_KEYS_NO_N: dict[str, tuple[str, ...]] = {
+    "RR": ("{b}/rr", "{b}/rr_5000"),
+    "FMR": ("{b}/fmr", "{b}/fmr_5000"),
+    "IR": ("{b}/ir", "{b}/ir_5000"),
+    "RRE_deg": ("{b}/rre",),
+    "RTE_m": ("{b}/rte",),
+}
+METRIC_TITLES = {
+    "RR": "Registration Recall (%)",
+    "FMR": "Feature Matching Recall (%)",
+    "IR": "Inlier Ratio (%)",
+    "RRE_deg": "RRE (deg)",
+    "RTE_m": "RTE (m)",
+}
+# lower is better for these (the sign of "better" in the difference)
+LOWER_IS_BETTER = ("RRE_deg", "RTE_m")
+
+
+@dataclass(frozen=True)
+class Row:
+    method: str
+    variant: str = ""
+    label: str = ""
+    where: Mapping[str, Any] = field(default_factory=dict)
+    experiment: str | None = None
+    reason: str | None = None  # why this row has no runs by design (e.g. a published baseline)
+
+    @property
+    def text(self) -> str:
+        return self.label or (f"{self.method} {self.variant}".strip())
+
+
+@dataclass(frozen=True)
+class Column:
+    benchmark: str
+    metric: str
+    n_points: int | None = None
+    variant: str = ""
+    label: str = ""
+    where: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def section(self) -> str:
+        return METRIC_TITLES.get(self.metric, self.metric)
+
+    def keys(self) -> tuple[str, ...]:
+        templates = METRIC_KEYS if self.n_points is not None else METRIC_KEYS_NO_N
+        if self.metric not in templates:
+            raise ConfigError("report column metric", self.metric, ", ".join(templates))
+        return tuple(t.format(b=self.benchmark, n=self.n_points) for t in templates[self.metric])
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    name: str
+    title: str
+    experiment: str
+    rows: tuple[Row, ...]
+    columns: tuple[Column, ...]
+    paper_table: str = ""
+    note: str = ""
+
+    @property
+    def experiments(self) -> list[str]:
+        out = [self.experiment]
+        out += [r.experiment for r in self.rows if r.experiment and r.experiment not in out]
+        return out
+
+
+def _columns(raw: Mapping[str, Any] | Sequence[Mapping[str, Any]], table: str) -> tuple[Column, ...]:
+    if isinstance(raw, Mapping) and "metric" in raw:  # grid
+        metrics = list(raw["metric"])
+        benches = list(raw["benchmark"])
+        ns = list(raw.get("n_points") or [None])
+        return tuple(Column(b, m, None if n is None else int(n)) for m in metrics for b in benches for n in ns)
+    cols = []
+    for c in raw:  # type: ignore[union-attr]
+        n = c.get("n_points")
+        cols.append(Column(str(c["benchmark"]), str(c["metric"]), None if n is None else int(n),
+                           str(c.get("variant") or ""), str(c.get("label") or ""), dict(c.get("where") or {})))
+    if not cols:
+        raise ConfigError(f"specs.{table}.columns", raw, "a grid {metric, benchmark, n_points} or a list of columns")
+    return tuple(cols)
+
+
+def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
+    """``specs`` node of conf/report.yaml -> {name: TableSpec}."""
+    out: dict[str, TableSpec] = {}
+    for name, s in raw.items():
+        rows = tuple(
+            Row(method=str(r["method"]), variant=str(r.get("variant") or ""), label=str(r.get("label") or ""),
+                where=dict(r.get("where") or {}), experiment=r.get("experiment"), reason=r.get("reason"))
+            for r in s["rows"]
+        )
+        if not rows:
+            raise ConfigError(f"specs.{name}.rows", [], "at least one row")
+        out[name] = TableSpec(
+            name=name,
+            title=str(s.get("title", name)),
+            experiment=str(s.get("experiment", name)),
+            rows=rows,
+            columns=_columns(s["columns"], name),
+            paper_table=str(s.get("paper_table", name)),
+            note=str(s.get("note", "") or ""),
+        )
+    return out

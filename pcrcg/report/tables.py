@@ -1,0 +1,261 @@
+"""Fill a table spec from runs and the paper's numbers: one :class:`Cell` per (row, column).
+
+Seeds (any runs of a cell with different config hashes) are aggregated as mean and sample
+standard deviation; of several FINISHED runs with the same config hash the newest counts.
+A cell without a finished run carries the reason (failed with its error, not run with its
+reason, still running, no such run, or the row's own reason).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import pandas as pd
+
+from pcrcg.report.spec import LOWER_IS_BETTER, Column, Row, TableSpec
+
+PAPER_CSV = Path(__file__).resolve().parents[1] / "resources" / "paper_tables.csv"
+PAPER_COLUMNS = ("table", "method", "variant", "benchmark", "metric", "n_points", "value")
+
+
+def load_paper(path: str | Path | None = None) -> pd.DataFrame:
+    """The paper's numbers (long format); default: the copy shipped in ``pcrcg/resources``."""
+    df = pd.read_csv(path if path is not None else PAPER_CSV, dtype={"variant": str})
+    missing = [c for c in PAPER_COLUMNS if c not in df.columns]
+    if missing:
+        from pcrcg.errors import DataError
+
+        raise DataError(path or "paper_tables.csv", f"missing columns {missing}")
+    df["variant"] = df["variant"].fillna("")
+    return df
+
+
+@dataclass(frozen=True)
+class RunRef:
+    run_id: str
+    config_hash: str
+    git_sha: str
+    profile: str
+    seed: str
+
+    def short(self) -> str:
+        return (f"run {self.run_id[:8]} · hash {self.config_hash[:8]} · git {self.git_sha[:7]}"
+                f" · profile {self.profile} · seed {self.seed}")
+
+
+@dataclass
+class Cell:
+    row: Row
+    col: Column
+    paper: float | None
+    mean: float | None = None
+    std: float | None = None
+    values: list[float] = field(default_factory=list)
+    runs: list[RunRef] = field(default_factory=list)
+    reason: str | None = None
+    metric_key: str | None = None
+
+    @property
+    def diff(self) -> float | None:
+        if self.mean is None or self.paper is None:
+            return None
+        return self.mean - self.paper
+
+    @property
+    def status(self) -> str:
+        return "ok" if self.mean is not None else "missing"
+
+
+@dataclass
+class FilledTable:
+    spec: TableSpec
+    cells: list[Cell]
+    profile: str | None
+    coverage: dict[str, tuple[float, float, int]] = field(default_factory=dict)  # row text -> (mean, std, n)
+    protocol: list[str] = field(default_factory=list)  # settings of the runs behind the cells
+
+    def cell(self, row: Row, col: Column) -> Cell:
+        for c in self.cells:
+            if c.row is row and c.col is col:
+                return c
+        raise KeyError((row.text, col))
+
+
+def _text(v: Any) -> str:
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float) and v.is_integer():
+        return str(int(v))
+    return str(v)
+
+
+def match(runs: pd.DataFrame, where: Mapping[str, Any]) -> pd.Series:
+    """Boolean mask of runs whose params (else tags) equal ``where`` (as text)."""
+    mask = pd.Series(True, index=runs.index)
+    for key, value in where.items():
+        col = f"params.{key}" if f"params.{key}" in runs.columns else f"tags.{key}"
+        if col not in runs.columns:
+            return pd.Series(False, index=runs.index)
+        mask &= runs[col].astype(str) == _text(value)
+    return mask
+
+
+def _get(rec: pd.Series, col: str, default: str = "?") -> str:
+    v = rec.get(col)
+    return default if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)
+
+
+def _ref(rec: pd.Series) -> RunRef:
+    return RunRef(str(rec["run_id"]), _get(rec, "tags.config_hash"), _get(rec, "tags.git_sha"),
+                  _get(rec, "tags.profile"), _get(rec, "params.seed"))
+
+
+def _paper_value(paper: pd.DataFrame, table: str, row: Row, col: Column) -> float | None:
+    variant = col.variant or row.variant
+    sel = paper[(paper["table"] == table) & (paper["method"] == row.method) & (paper["variant"] == variant)
+                & (paper["benchmark"] == col.benchmark) & (paper["metric"] == col.metric)]
+    if col.n_points is None:
+        sel = sel[sel["n_points"].isna()]
+    else:
+        sel = sel[sel["n_points"] == col.n_points]
+    return float(sel.iloc[0]["value"]) if len(sel) else None
+
+
+def _newest_per_hash(df: pd.DataFrame) -> pd.DataFrame:
+    if df.empty or "tags.config_hash" not in df.columns:
+        return df
+    return df.sort_values("start_time").groupby("tags.config_hash", dropna=False, sort=False).tail(1)
+
+
+def _where_text(where: Mapping[str, Any]) -> str:
+    return ", ".join(f"{k}={_text(v)}" for k, v in where.items()) or "any config"
+
+
+def _missing_reason(candidates: pd.DataFrame, experiment: str, where: Mapping[str, Any], profile: str | None) -> str:
+    if not candidates.empty:
+        last = candidates.sort_values("start_time").iloc[-1]
+        status = str(last["status"])
+        error = _get(last, "tags.error", "")
+        if status == "FAILED":
+            kind = "not run" if _get(last, "tags.not_run", "") == "true" else "failed"
+            return f"{kind}: {error or 'no error recorded'} (run {str(last['run_id'])[:8]})"
+        if status in ("RUNNING", "SCHEDULED"):
+            return f"still running or crashed (run {str(last['run_id'])[:8]})"
+        return f"{status.lower()} (run {str(last['run_id'])[:8]})"
+    prof = f" at profile {profile}" if profile else ""
+    return f"no run of experiment '{experiment}' with {_where_text(where)}{prof}"
+
+
+def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
+               profiles: Mapping[str, str | None]) -> FilledTable:
+    """Every cell of ``spec`` from ``runs`` (see module docstring).
+
+    ``profiles``: experiment -> the profile whose runs count (None: any).
+    """
+    cells: list[Cell] = []
+    coverage: dict[str, tuple[float, float, int]] = {}
+    for row in spec.rows:
+        exp = row.experiment or spec.experiment
+        prof = profiles.get(exp)
+        base = runs[runs["experiment"] == exp] if "experiment" in runs.columns else runs.iloc[0:0]
+        if prof is not None and "tags.profile" in base.columns:
+            base = base[base["tags.profile"].astype(str) == prof]
+        row_runs = base[match(base, row.where)] if row.where else (base.iloc[0:0] if row.reason else base)
+        for col in spec.columns:
+            cell = Cell(row, col, _paper_value(paper, spec.paper_table, row, col))
+            cells.append(cell)
+            if row.reason and not row.where:
+                cell.reason = row.reason
+                continue
+            cand = row_runs[match(row_runs, col.where)] if col.where else row_runs
+            done = _newest_per_hash(cand[cand["status"] == "FINISHED"])
+            if done.empty:
+                cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof)
+                continue
+            vals, refs = [], []
+            for _, rec in done.iterrows():
+                for key in col.keys():
+                    v = rec.get(f"metrics.{key}")
+                    if v is not None and not (isinstance(v, float) and math.isnan(v)):
+                        vals.append(float(v))
+                        refs.append(_ref(rec))
+                        cell.metric_key = key
+                        break
+            cell.runs = refs
+            if not vals:
+                cell.reason = f"metric {' or '.join(col.keys())} not logged by {len(done)} finished run(s)"
+                continue
+            cell.values = vals
+            cell.mean = float(np.mean(vals))
+            cell.std = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
+        cov_col = "metrics.color_coverage"
+        if cov_col in row_runs.columns:
+            done = _newest_per_hash(row_runs[row_runs["status"] == "FINISHED"])
+            vals = [float(v) for v in done[cov_col] if v is not None and not math.isnan(float(v))]
+            if vals:
+                coverage[row.text] = (float(np.mean(vals)), float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0,
+                                      len(vals))
+    used = {r.run_id for c in cells for r in c.runs}
+    proto = protocol_summary(runs[runs["run_id"].isin(used)]) if used else []
+    return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto)
+
+
+def _values(df: pd.DataFrame, col: str) -> list[str]:
+    if col not in df.columns:
+        return []
+    vals = df[col].dropna().astype(str).unique().tolist()
+    return sorted(vals, key=lambda s: (len(s), s))
+
+
+def protocol_summary(runs: pd.DataFrame) -> list[str]:
+    """Short facts about how ``runs`` were evaluated: pairs per benchmark, RANSAC, seeds, profile."""
+    if runs.empty:
+        return []
+    out = []
+    benches = sorted({c.split(".")[2] for c in runs.columns
+                      if c.startswith("params.protocol.") and c.count(".") >= 3})
+    for b in benches:
+        facts = [f"{c.rsplit('.', 1)[-1]} {'/'.join(_values(runs, c))}"
+                 for c in sorted(runs.columns) if c.startswith(f"params.protocol.{b}.") and _values(runs, c)]
+        if facts:
+            out.append(f"{b}: " + ", ".join(facts))
+    ransac = [f"{c.split('ransac_')[-1].split('.')[-1]} {'/'.join(_values(runs, c))}"
+              for c in sorted(runs.columns) if c.startswith("params.eval.ransac_") and _values(runs, c)]
+    if ransac and "ransac" not in benches:
+        out.append("RANSAC " + ", ".join(ransac))
+    seeds = _values(runs, "params.seed")
+    if seeds:
+        out.append("seeds " + ", ".join(seeds))
+    return out
+
+
+def trend_agreement(table: FilledTable) -> dict[str, Any]:
+    """How well our row ordering follows the paper's, per column, over rows with both numbers.
+
+    Returns ``{"pairs": n, "agree": k, "fraction": k / n, "best_paper": {...}, "best_ours": {...}}``
+    (best row per column; lower is better for RRE/RTE).
+    """
+    agree = pairs = 0
+    best_paper: dict[str, str] = {}
+    best_ours: dict[str, str] = {}
+    for col in table.spec.columns:
+        both = [c for c in table.cells if c.col is col and c.mean is not None and c.paper is not None]
+        sign = -1.0 if col.metric in LOWER_IS_BETTER else 1.0
+        key = f"{col.benchmark} {col.metric} {col.n_points or ''}".strip()
+        if both:
+            best_paper[key] = max(both, key=lambda c: sign * c.paper).row.text  # type: ignore[operator]
+            best_ours[key] = max(both, key=lambda c: sign * c.mean).row.text  # type: ignore[operator]
+        for i in range(len(both)):
+            for j in range(i + 1, len(both)):
+                dp = both[i].paper - both[j].paper  # type: ignore[operator]
+                do = both[i].mean - both[j].mean  # type: ignore[operator]
+                if dp == 0:
+                    continue
+                pairs += 1
+                agree += int(np.sign(dp) == np.sign(do))
+    return {"pairs": pairs, "agree": agree, "fraction": agree / pairs if pairs else float("nan"),
+            "best_paper": best_paper, "best_ours": best_ours}

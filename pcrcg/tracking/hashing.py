@@ -1,0 +1,76 @@
+"""Config identity: the resolved config as plain data, its hash, and its flattened params.
+
+Two jobs with the same hash compute the same thing, so a finished run with that hash
+makes a new one unnecessary. Keys that only say *where* or *how* a run is recorded
+(tracking, output paths, device, the MLflow experiment it is filed under) are left out.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any, Iterable, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+# top-level keys that do not change what a run computes
+HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime")
+# ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
+TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "stages.evaluate")
+
+
+def to_plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """The resolved config as plain dicts/lists, without the ``hydra`` node."""
+    if isinstance(cfg, DictConfig):
+        data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False)
+    else:
+        data = dict(cfg)
+    assert isinstance(data, dict)
+    data.pop("hydra", None)
+    return data
+
+
+def _drop(data: dict[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
+    """Remove dotted keys (``a.b``) from a nested dict (a copy)."""
+    out = json.loads(json.dumps(data, default=str))
+    for key in exclude:
+        *parents, last = key.split(".")
+        node = out
+        for p in parents:
+            node = node.get(p) if isinstance(node, dict) else None
+            if node is None:
+                break
+        if isinstance(node, dict):
+            node.pop(last, None)
+    return out
+
+
+def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
+    """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``."""
+    data = _drop(to_plain(cfg), exclude)
+    blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """Nested mapping -> ``{"a.b.c": "value"}``; lists become JSON text, None becomes ``"null"``."""
+    out: dict[str, str] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            if value:
+                out.update(flatten(value, name + "."))
+            else:
+                out[name] = "{}"
+        elif isinstance(value, (list, tuple)):
+            out[name] = json.dumps(list(value), default=str)
+        elif value is None:
+            out[name] = "null"
+        else:
+            out[name] = str(value)
+    return out
+
+
+def flat_params(cfg: DictConfig | Mapping[str, Any]) -> dict[str, str]:
+    """The flattened resolved config (without ``hydra``): what a run logs as MLflow params."""
+    return flatten(to_plain(cfg))

@@ -1,0 +1,24 @@
+"""The 2D branch: correspondences between RGB views, 2D encoders and per-pixel feature maps.
+
+Modules (each documents its API in its own docstring):
+
+* :mod:`pcrcg.vision.matching` (config group ``matcher2d=sift|orb``):
+  ``MatcherConfig``, ``Matches(uv_a, uv_b, confidence)``, ``match_images(img_a, img_b, cfg)``,
+  ``MatchCache(cache_dir)`` (match dumps on disk), ``view_pairs(n_src, n_tgt, mode)``,
+  ``match_views(src_views, tgt_views, cfg, cache)``.
+  CLI filling the cache: ``python -m pcrcg.vision.matching data.root=DIR split=train``.
+* :mod:`pcrcg.vision.encoders` (``encoder2d=scratch|imagenet|pri3d``, ``encoder2d.arch``):
+  ``ResUNet(arch, out_dim)`` with torchvision-named encoder, ``build_encoder(cfg)``,
+  ``load_torchvision_weights``, ``save_pri3d_checkpoint`` / ``load_pri3d_checkpoint`` (the format
+  the 2D pretraining stage writes).
+* :mod:`pcrcg.vision.features` (``features=none|rgb|sift|deep``): ``rgb_map``, ``dense_sift_map``,
+  ``FeatureExtractor``, ``build_feature_extractor``.
+
+Conventions: images are (H, W, 3) uint8 RGB; pixel coordinates are ``(u, v) = (x, y)`` with pixel
+centres at integers (the convention of :func:`pcrcg.geometry.backproject`); feature maps are
+(C, H, W) float tensors.
+"""
+
+from pcrcg.vision.matching import MatchCache, MatcherConfig, Matches, match_images, match_views, view_pairs
+
+__all__ = ["MatchCache", "MatcherConfig", "Matches", "match_images", "match_views", "view_pairs"]

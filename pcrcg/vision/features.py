@@ -1,0 +1,172 @@
+"""Per-pixel 2D feature maps of RGB views: ``none | rgb | sift | deep`` (config group ``features``).
+
+Public API
+----------
+* :func:`rgb_map` ``(color (H, W, 3) uint8) -> (3, H, W) float32 tensor in [0, 1]``.
+* :func:`dense_sift_map` ``(color, dim, step=4, size=8.0, seed=0) -> (dim, H, W) float32 tensor``:
+  OpenCV SIFT descriptors computed on a dense keypoint grid (one keypoint every ``step`` pixels,
+  centred in its cell), RootSIFT-normalised, reduced from 128 to ``dim`` by a fixed seeded random
+  orthonormal projection (:func:`sift_projection`), L2-normalised, then bilinearly upsampled to
+  every pixel (pixel-centre aligned). Deterministic: same image, same map.
+* :class:`FeatureExtractor` ``(kind, dim, encoder=None, image_size=None, sift_step=4, sift_size=8.0,
+  seed=0)`` ``nn.Module``; ``extractor(views, device) -> list[(C, h, w) tensor]`` one map per view
+  (``kind=deep``: the encoder's output on the views resized to ``image_size`` (H, W), batched, with
+  gradients; ``rgb``/``sift``: at the view's own resolution, constant). ``out_dim``: the width C
+  (``0`` for ``none``, ``3`` for ``rgb``).
+* :func:`build_feature_extractor` ``(features_cfg, encoder_cfg=None) -> FeatureExtractor``.
+
+Feature maps may have any resolution: the lifting stage resamples them to its projection grid.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from pcrcg.errors import ConfigError
+
+KINDS = ("none", "rgb", "sift", "deep")
+
+
+def rgb_map(color: np.ndarray, device: torch.device | str | None = None) -> torch.Tensor:
+    """RGB uint8 (H, W, 3) -> (3, H, W) float32 in [0, 1]."""
+    t = torch.from_numpy(np.ascontiguousarray(color)).to(device=device)
+    return t.permute(2, 0, 1).float().div_(255.0)
+
+
+def sift_projection(dim: int, seed: int = 0) -> np.ndarray:
+    """A fixed (seeded) 128 -> dim projection with orthonormal rows: (dim, 128) float32."""
+    if not 1 <= dim <= 128:
+        raise ConfigError("features.dim", dim, "1..128 for features=sift")
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(128, dim)))
+    return q.T.astype(np.float32)
+
+
+def dense_sift_map(color: np.ndarray, dim: int = 32, step: int = 4, size: float = 8.0, seed: int = 0) -> torch.Tensor:
+    """Dense SIFT descriptors on the pixel grid, reduced to ``dim``: (dim, H, W) float32."""
+    import cv2
+    import torch.nn.functional as F
+
+    if step < 1:
+        raise ConfigError("features.step", step, "an integer >= 1")
+    h, w = color.shape[:2]
+    gray = cv2.cvtColor(np.ascontiguousarray(color), cv2.COLOR_RGB2GRAY)
+    gh, gw = -(-h // step), -(-w // step)
+    ys = (step - 1) / 2.0 + step * np.arange(gh)
+    xs = (step - 1) / 2.0 + step * np.arange(gw)
+    kps = [cv2.KeyPoint(float(x), float(y), float(size)) for y in ys for x in xs]
+    out_kps, desc = cv2.SIFT_create().compute(gray, kps)
+    if desc is None or len(out_kps) != len(kps):
+        raise RuntimeError(f"OpenCV SIFT returned {0 if desc is None else len(out_kps)} descriptors "
+                           f"for {len(kps)} grid keypoints")
+    desc = desc.astype(np.float32)
+    desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)  # RootSIFT
+    desc = np.sqrt(desc)
+    red = desc @ sift_projection(dim, seed).T
+    red /= np.maximum(np.linalg.norm(red, axis=1, keepdims=True), 1e-12)
+    grid = torch.from_numpy(red.reshape(gh, gw, dim)).permute(2, 0, 1)[None]
+    full = F.interpolate(grid, size=(gh * step, gw * step), mode="bilinear", align_corners=False)
+    return full[0, :, :h, :w].contiguous()
+
+
+def _resize_color(color: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
+    import cv2
+
+    if size is None or tuple(color.shape[:2]) == tuple(size):
+        return color
+    return cv2.resize(color, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+
+
+class FeatureExtractor(nn.Module):
+    """Feature maps of views; holds the 2D encoder (``kind=deep``) so that it trains end to end."""
+
+    def __init__(self, kind: str = "rgb", dim: int = 3, encoder: nn.Module | None = None,
+                 image_size: Sequence[int] | None = None, sift_step: int = 4, sift_size: float = 8.0,
+                 seed: int = 0, cache_size: int = 256):
+        super().__init__()
+        if kind not in KINDS:
+            raise ConfigError("features.name", kind, " | ".join(KINDS))
+        if kind == "rgb" and int(dim) != 3:
+            raise ConfigError("features.dim", dim, "3 for features=rgb")
+        if kind == "deep":
+            if encoder is None:
+                raise ConfigError("encoder2d", None, "an encoder for features=deep")
+            enc_dim = getattr(encoder, "out_dim", dim)
+            if int(enc_dim) != int(dim):
+                raise ConfigError("features.dim", dim, f"the encoder's out_dim ({enc_dim}) for features=deep")
+        self.kind = kind
+        self.dim = 0 if kind == "none" else int(dim)
+        self.encoder = encoder if kind == "deep" else None
+        self.image_size = tuple(int(s) for s in image_size) if image_size else None
+        self.sift_step, self.sift_size, self.seed = int(sift_step), float(sift_size), int(seed)
+        self._cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self._cache_size = int(cache_size)
+
+    @property
+    def out_dim(self) -> int:
+        return self.dim
+
+    def _constant_map(self, view: Any) -> torch.Tensor:
+        """rgb/sift map of one view, memoised by (image identity, kind) since it never changes."""
+        key = (self.kind, getattr(view, "color_path", None) or id(view.color), view.color.shape,
+               int(view.color[::7, ::7].sum()))
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        if self.kind == "rgb":
+            m = rgb_map(view.color)
+        else:
+            m = dense_sift_map(view.color, self.dim, self.sift_step, self.sift_size, self.seed)
+        self._cache[key] = m
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return m
+
+    def forward(self, views: Sequence[Any], device: torch.device | str | None = None) -> list[torch.Tensor]:
+        """One (C, h, w) float map per view (``View`` objects); [] for ``none`` or no views."""
+        if self.kind == "none" or len(views) == 0:
+            return []
+        if self.kind in ("rgb", "sift"):
+            return [self._constant_map(v).to(device) for v in views]
+        if device is None:
+            device = next(self.encoder.parameters()).device
+        sizes = {self.image_size or v.color.shape[:2] for v in views}
+        out: list[torch.Tensor | None] = [None] * len(views)
+        for size in sizes:  # batch the views that share an input size
+            idx = [k for k, v in enumerate(views) if (self.image_size or v.color.shape[:2]) == size]
+            batch = torch.stack([rgb_map(_resize_color(views[k].color, self.image_size), device) for k in idx])
+            feats = self.encoder(batch)
+            for j, k in enumerate(idx):
+                out[k] = feats[j]
+        return out  # type: ignore[return-value]
+
+
+def _get(cfg: Any, key: str, default: Any = None) -> Any:
+    if cfg is None:
+        return default
+    if isinstance(cfg, Mapping):
+        return cfg.get(key, default)
+    return getattr(cfg, key, default)
+
+
+def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> FeatureExtractor:
+    """A :class:`FeatureExtractor` from the ``features`` (and, for ``deep``, ``encoder2d``) config nodes."""
+    kind = _get(features_cfg, "name", "rgb")
+    if kind not in KINDS:
+        raise ConfigError("features.name", kind, " | ".join(KINDS))
+    dim = int(_get(features_cfg, "dim", 3 if kind == "rgb" else 32) or 0)
+    encoder = None
+    image_size = None
+    if kind == "deep":
+        from pcrcg.vision.encoders import build_encoder
+
+        encoder = build_encoder(encoder_cfg, out_dim=dim)
+        image_size = _get(encoder_cfg, "image_size", None)
+    return FeatureExtractor(kind, dim, encoder, image_size, int(_get(features_cfg, "step", 4)),
+                            float(_get(features_cfg, "size", 8.0)), int(_get(features_cfg, "seed", 0)))

@@ -1,0 +1,179 @@
+"""Validation of the run config: every group, the top-level keys, sweeps, and the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from pcrcg.config import (
+    check_overrides,
+    check_sweep_params,
+    group_options,
+    load_run_config,
+    preflight,
+    validate_run_config,
+)
+from pcrcg.errors import ConfigError
+from test_run_support import make_conf
+
+EXPERIMENTS = ("main_results", "window_size", "views", "backbone_2d", "projection", "icp_init", "sift_dlt")
+
+
+@pytest.fixture(scope="module")
+def conf(tmp_path_factory) -> Path:
+    return make_conf(tmp_path_factory.mktemp("cfg") / "conf")
+
+
+def _error(conf: Path, overrides: list[str]) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        load_run_config(overrides, conf)
+    return info.value
+
+
+def test_defaults_compose_and_validate(conf):
+    cfg = load_run_config(["profile=tiny"], conf)
+    assert cfg.method == "learned" and cfg.views == 2 and cfg.window_size == 11
+    assert cfg.profile.name == "tiny"
+    assert list(cfg.eval.n_points) == [5000, 2500, 1000, 500, 250]
+    assert list(cfg.eval.benchmarks) == ["3DMatch", "3DLoMatch"]
+    assert cfg.logger.name == "mlflow" and cfg.logger.tracking_uri is None
+
+
+@pytest.mark.parametrize(
+    "overrides, setting, allowed_words",
+    [
+        # top level
+        (["views=5"], "views", "1, 2, 3"),
+        (["views=0"], "views", "1, 2, 3"),
+        (["window_size=0"], "window_size", "odd integer"),
+        (["window_size=4"], "window_size", "odd integer"),
+        (["method=superglue"], "method", "learned, fpfh, icp, color_icp, sift_dlt"),
+        (["seed=-1"], "seed", ">= 0"),
+        (["icp_init=learned"], "icp_init", "icp, color_icp"),
+        (["experiment_name=a/b"], "experiment_name", "without '/'"),
+        (["eval.n_points=[5000,0]"], "eval.n_points", ">= 1"),
+        (["eval.benchmarks=[3DMatch,KITTI]"], "eval.benchmarks", "3DMatch, 3DLoMatch"),
+        (["eval.ransac_iterations=many"], "eval.ransac_iterations", "integer"),
+        (["eval.fmr_threshold=5"], "eval.fmr_threshold", "(0, 1)"),
+        (["stages.train=nowhere.train"], "stages.train", "importable"),
+        # groups: an option that does not exist names the ones that do
+        (["data=kitti"], "data", "synthmatch"),
+        (["profile=huge"], "profile", "cpu, paper, tiny"),
+        (["model=geotransformer"], "model", "predator"),
+        (["encoder2d=resnet"], "encoder2d", "imagenet, pri3d, scratch"),
+        (["features=normals"], "features", "deep, none, rgb, sift"),
+        (["projection=orthographic"], "projection", "explicit, implicit, none"),
+        (["matcher2d=superglue"], "matcher2d", "sift"),
+        (["trainer=tpu"], "trainer", "default"),
+        (["logger=wandb"], "logger", "mlflow, none"),
+        (["+experiment=table9"], "experiment", "main_results"),
+        # values inside groups
+        (["logger.name=wandb"], "logger.name", "mlflow, none"),
+        (["logger.skip_finished=maybe"], "logger.skip_finished", "true or false"),
+        (["profile.name=huge"], "profile.name", "tiny, cpu, paper"),
+        (["features=deep", "projection=explicit", "features.name=normals"], "features.name", "rgb"),
+        (["projection=explicit", "projection.name=orthographic"], "projection.name", "implicit"),
+        (["data.name=kitti"], "data.name", "synthmatch"),
+        (["encoder2d.name=resnet"], "encoder2d.name", "imagenet"),
+        # rules across groups
+        (["features=deep", "projection=none"], "projection", "implicit or explicit"),
+    ],
+)
+def test_bad_value_names_setting_and_allowed(conf, overrides, setting, allowed_words):
+    err = _error(conf, overrides)
+    assert err.setting == setting
+    assert allowed_words in err.allowed
+    assert setting in str(err) and "allowed" in str(err)
+
+
+def test_group_rules_when_the_group_has_the_setting(conf):
+    """Settings of other stages' groups are checked when their files define them."""
+    cfg = load_run_config(["profile=tiny", "features=deep", "projection=explicit"], conf)
+    data = OmegaConf.to_container(cfg, resolve=True)
+    cases = {("encoder2d", "arch"): "resnet101", ("matcher2d", "ratio"): 1.5, ("features", "dim"): -1,
+             ("projection", "depth_tolerance"): 0.0, ("trainer", "max_epochs"): 0}
+    for (group, key), bad in cases.items():
+        broken = OmegaConf.create(data)
+        broken[group][key] = bad
+        with pytest.raises(ConfigError) as info:
+            validate_run_config(broken, None, [conf])
+        assert info.value.setting == f"{group}.{key}"
+
+
+def test_every_experiment_composes_and_each_sweep_value_is_valid(conf):
+    for exp in EXPERIMENTS:
+        cfg = load_run_config([f"+experiment={exp}", "profile=tiny"], conf)
+        assert cfg.experiment_name == exp
+        exp_yaml = OmegaConf.load(conf / "experiment" / f"{exp}.yaml")
+        params = exp_yaml.hydra.sweeper.params
+        assert len(params) >= 1
+        check_sweep_params(params, [conf])
+        # the sweep's last job composes and validates (composing all 24 jobs costs ~20 s)
+        job = [f"{k}={str(v).split(',')[-1]}" for k, v in params.items()]
+        load_run_config([f"+experiment={exp}", "profile=tiny", *job], conf)
+
+
+def test_experiment_sweeps_match_the_paper_tables(conf):
+    ws = OmegaConf.load(conf / "experiment" / "window_size.yaml").hydra.sweeper.params
+    assert str(ws.window_size).split(",") == ["3", "7", "11", "17"]
+    views = OmegaConf.load(conf / "experiment" / "views.yaml").hydra.sweeper.params
+    assert str(views.views).split(",") == ["1", "2", "3"]
+    bb = OmegaConf.load(conf / "experiment" / "backbone_2d.yaml").hydra.sweeper.params
+    assert str(bb.encoder2d).split(",") == ["scratch", "imagenet", "pri3d"]
+    proj = OmegaConf.load(conf / "experiment" / "projection.yaml").hydra.sweeper.params
+    assert str(proj.features).split(",") == ["rgb", "sift", "deep"]
+    assert str(proj.projection).split(",") == ["implicit", "explicit"]
+
+
+def test_sweep_values_are_checked_one_by_one(conf):
+    check_overrides(["views=1,2,3", "window_size=3,7,11,17", "projection=implicit,explicit"], [conf])
+    with pytest.raises(ConfigError) as info:
+        check_overrides(["window_size=3,8"], [conf])
+    assert info.value.setting == "window_size" and info.value.value == 8
+    with pytest.raises(ConfigError) as info:
+        check_sweep_params({"views": "1,5"}, [conf])
+    assert info.value.value == 5
+    with pytest.raises(ConfigError) as info:
+        check_overrides(["features=rgb,normals"], [conf])
+    assert info.value.setting == "features" and info.value.value == "normals"
+    # range sweeps are expanded too
+    with pytest.raises(ConfigError):
+        check_overrides(["views=range(1,5)"], [conf])
+
+
+def test_group_options_lists_option_files(conf):
+    assert group_options("projection", [conf]) == ["explicit", "implicit", "none"]
+    assert "mlflow" in group_options("logger", [conf])
+
+
+def test_preflight_pretrained_encoder_needs_weights(conf, tmp_path):
+    cfg = load_run_config(["profile=tiny", "features=deep", "projection=explicit", "encoder2d=imagenet"], conf)
+    with pytest.raises(ConfigError) as info:
+        preflight(cfg)
+    assert info.value.setting.startswith("encoder2d.")
+    assert "nothing is downloaded" in info.value.allowed
+    missing = tmp_path / "resnet18.pth"
+    cfg.encoder2d.weights = str(missing)
+    with pytest.raises(ConfigError) as info:
+        preflight(cfg)
+    assert info.value.setting == "encoder2d.weights" and info.value.allowed == "an existing local file"
+    missing.write_bytes(b"x")
+    preflight(cfg)
+    # without color the encoder is not used: no weights needed
+    cfg2 = load_run_config(["profile=tiny", "encoder2d=imagenet"], conf)
+    preflight(cfg2)
+
+
+def test_cli_rejects_bad_values_before_any_work(conf, tmp_path, monkeypatch, capsys):
+    from test_run_support import run_cli
+
+    for args, word in ((["window_size=0"], "window_size"), (["projection=foo"], "projection"),
+                       (["views=1,5", "-m"], "views")):
+        rc = run_cli(["--config-path", str(conf), *args], tmp_path, monkeypatch)
+        err = capsys.readouterr().err
+        assert rc == 2
+        assert f"invalid config value {word}=" in err and "allowed" in err
+    assert not (tmp_path / "mlflow.db").exists()
+    assert not (tmp_path / "outputs").exists() and not (tmp_path / "multirun").exists()

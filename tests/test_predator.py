@@ -1,0 +1,179 @@
+"""Predator network and its losses on hand-made cases with known values."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pcrcg.errors import ConfigError
+from pcrcg.models.datamodule import PairCollate
+from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
+from pcrcg.models.losses import (
+    LossConfig,
+    PredatorLoss,
+    circle_loss,
+    feature_match_recall,
+    matchability_labels,
+    overlap_labels,
+    weighted_bce,
+)
+from pcrcg.models.predator import Predator, PredatorConfig, build_predator, knn_indices
+from pcrcg.models.toy import toy_pair
+
+TINY = dict(voxel_size=0.12, num_layers=3, first_dim=16, final_dim=8, gnn_dim=16, num_heads=2, dgcnn_k=4)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    s = toy_pair(0, density=150.0)
+    spec = PyramidSpec(0.12, 3, 2.5)
+    spec = PyramidSpec(0.12, 3, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
+    return PairCollate(spec, overlap_radius=0.18)([s])
+
+
+# --------------------------------------------------------------------------- network
+
+
+def test_forward_shapes_and_ranges(batch):
+    torch.manual_seed(0)
+    net = build_predator(TINY, in_dim=1)
+    n0 = batch.pyramid.points[0].shape[0]
+    with torch.no_grad():
+        out = net(torch.ones(n0, 1), batch.pyramid)
+    assert out.descriptors.shape == (n0, 8)
+    torch.testing.assert_close(out.descriptors.norm(dim=1), torch.ones(n0), rtol=1e-5, atol=1e-5)
+    for s in (out.overlap, out.matchability):
+        assert s.shape == (n0,) and float(s.min()) >= 0 and float(s.max()) <= 1
+    torch.testing.assert_close(out.overlap, torch.sigmoid(out.overlap_logits))
+    # the two fragments interact: changing the target's features changes the source's descriptors
+    feats = torch.ones(n0, 1)
+    feats[batch.n_src:] = 2.0
+    with torch.no_grad():
+        out2 = net(feats, batch.pyramid)
+    assert not torch.allclose(out.descriptors[: batch.n_src], out2.descriptors[: batch.n_src])
+
+
+def test_architecture_matches_predator_3dmatch_widths():
+    net = Predator(PredatorConfig())  # 4 levels, 128 first features, 256-wide attention
+    blocks = [type(b).__name__ for b in net.encoder]
+    assert blocks == ["SimpleBlock"] + ["ResnetBottleneckBlock"] * 10
+    assert net.encoder[0].conv.weights.shape == (15, 1, 64)
+    assert net.encoder[-1].unary2.mlp.out_features == 1024
+    assert net.bottle.in_features == 1024 and net.bottle.out_features == 256
+    lin = [m for m in net.decoder if hasattr(m, "mlp")]
+    assert [(m.mlp.in_features, m.mlp.out_features) for m in lin] == [(770, 129), (385, 64), (192, 34)]
+    assert net.gnn.names == ["self", "cross", "self"]
+    # kernel radii scale with the level: 2.5 voxels x 2^l, extent 2 voxels x 2^l
+    assert net.encoder[0].conv.radius == pytest.approx(0.0625)
+    assert net.encoder[-1].conv.extent == pytest.approx(0.025 * 2.0 * 8)
+
+
+def test_in_dim_changes_only_the_first_layer():
+    a = build_predator(TINY, in_dim=1).state_dict()
+    b = build_predator(TINY, in_dim=1 + 32).state_dict()
+    assert a.keys() == b.keys()
+    differ = [k for k in a if a[k].shape != b[k].shape]
+    assert differ == ["encoder.0.conv.weights"]
+    assert b["encoder.0.conv.weights"].shape == (15, 33, 8)
+
+
+def test_bad_sizes_name_the_setting():
+    with pytest.raises(ConfigError, match="model.num_heads"):
+        build_predator({**TINY, "gnn_dim": 30, "num_heads": 4})
+    with pytest.raises(ConfigError, match="model.num_layers"):
+        build_predator({**TINY, "num_layers": 1})
+
+
+def test_knn_excludes_self():
+    pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [3.5, 0, 0]])
+    idx = knn_indices(pts, 2)
+    assert idx.tolist() == [[1, 2], [0, 2], [3, 1], [2, 1]]
+
+
+# --------------------------------------------------------------------------- losses
+
+
+def _two_by_two(pos_d: float, neg_d: float):
+    coords = torch.tensor([[0.0, 1.0], [1.0, 0.0]])  # diagonal = positives, off-diagonal = negatives
+    feats = torch.tensor([[pos_d, neg_d], [neg_d, pos_d]], requires_grad=True)
+    return coords, feats
+
+
+def test_circle_loss_known_values():
+    # As Predator's code: entries outside the positive (negative) mask enter each logsumexp with a
+    # logit of 0, i.e. exp(0) = 1. Optimal pairs have zero weights, so each row is log(1 + 1):
+    # softplus(2 log 2) / 24 = ln(5) / 24.
+    coords, feats = _two_by_two(0.1, 1.4)
+    val = circle_loss(coords, feats, pos_radius=0.5, safe_radius=0.8, log_scale=24)
+    assert float(val) == pytest.approx(math.log(5) / 24, rel=1e-6)
+    # d_p = 0.5 -> w_p = 0.4, logit 24*0.4*0.4 = 3.84; d_n = 1.0 -> w_n = 0.4, logit 24*0.4*0.4 = 3.84
+    coords, feats = _two_by_two(0.5, 1.0)
+    val = circle_loss(coords, feats, pos_radius=0.5, safe_radius=0.8, log_scale=24)
+    lse = math.log(math.exp(3.84) + 1)
+    assert float(val) == pytest.approx(math.log1p(math.exp(2 * lse)) / 24, rel=1e-6)
+    val.backward()
+    assert float(feats.grad[0, 0]) > 0 and float(feats.grad[0, 1]) < 0  # pull positives, push negatives
+
+
+def test_circle_loss_ignores_rows_without_negatives():
+    coords = torch.tensor([[0.0, 0.05], [1.0, 0.0]])  # row 0 / column 1 have no negative beyond 0.8
+    feats = torch.tensor([[0.5, 1.0], [1.0, 0.5]])
+    val = circle_loss(coords, feats, 0.5, 0.8)
+    # only row 1 and column 0 count; each has one positive (logit 3.84) and one negative (3.84)
+    lse = math.log(math.exp(3.84) + 1)
+    assert float(val) == pytest.approx(math.log1p(math.exp(2 * lse)) / 24, rel=1e-6)
+    assert float(circle_loss(torch.zeros(2, 2), feats, 0.5, 0.8)) == 0.0  # no negatives at all
+
+
+def test_weighted_bce_known_value():
+    labels = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    logits = torch.zeros(4)  # p = 0.5 everywhere, bce = ln 2; w+ = 0.75, w- = 0.25
+    assert float(weighted_bce(logits, labels)) == pytest.approx((0.75 + 3 * 0.25) / 4 * math.log(2), rel=1e-6)
+    confident = torch.tensor([10.0, -10.0, -10.0, -10.0])
+    assert float(weighted_bce(confident, labels)) < 1e-4
+
+
+def test_matchability_and_overlap_labels():
+    src = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    tgt = src.clone()
+    d_src = torch.eye(3)
+    d_tgt = torch.eye(3)[[0, 2, 1]]  # target points 1 and 2 have swapped descriptors
+    ls, lt = matchability_labels(src, tgt, d_src, d_tgt, radius=0.1)
+    assert ls.tolist() == [1.0, 0.0, 0.0] and lt.tolist() == [1.0, 0.0, 0.0]
+    corr = torch.tensor([[0, 1], [2, 0]])
+    assert overlap_labels(3, 2, corr, torch.device("cpu")).tolist() == [1, 0, 1, 1, 1]
+
+
+def test_feature_match_recall():
+    coords = torch.tensor([[0.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0]])
+    feats = torch.tensor([[0.1, 0.5, 0.9], [0.2, 0.9, 0.9], [0.3, 0.4, 0.5]])
+    # rows 0 and 1 have a true positive; row 0's best feature is the positive, row 1's is not
+    assert float(feature_match_recall(coords, feats, 0.5)) == pytest.approx(0.5)
+
+
+def test_predator_loss_on_perfect_and_random_outputs():
+    rng = np.random.default_rng(0)
+    pts = torch.from_numpy(rng.uniform(0, 2, (60, 3)).astype(np.float32))
+    T = torch.eye(4)
+    T[:3, 3] = torch.tensor([0.5, 0.0, 0.0])
+    src = pts[:40] - T[:3, 3]  # src mapped by T onto the first 40 target points
+    tgt = pts
+    points = torch.cat([src, tgt])
+    corr = torch.stack([torch.arange(40), torch.arange(40)], 1)
+    crit = PredatorLoss(LossConfig(pos_radius=0.5, safe_radius=4.0, overlap_radius=0.5, matchability_radius=1.0),
+                        voxel_size=0.02)
+    desc = torch.nn.functional.normalize(torch.randn(60, 16), dim=1)
+    perfect = torch.cat([desc[:40], desc])  # corresponding points share descriptors
+    ov = torch.cat([torch.full((40,), 8.0), torch.full((40,), 8.0), torch.full((20,), -8.0)])
+    good = crit(perfect, ov, torch.full((100,), 8.0), points, 40, T, corr)
+    bad = crit(torch.nn.functional.normalize(torch.randn(100, 16), dim=1), -ov, torch.zeros(100), points, 40, T,
+               corr)
+    assert float(good["recall"]) == 1.0 and float(good["overlap_loss"]) < 1e-3
+    assert float(good["overlap_precision"]) == 1.0 and float(good["overlap_recall"]) == 1.0
+    assert float(good["matchability_recall"]) == 1.0
+    assert float(good["circle_loss"]) < float(bad["circle_loss"])
+    assert float(bad["overlap_loss"]) > 1.0
+    assert float(good["n_corr"]) == 40

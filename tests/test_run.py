@@ -1,0 +1,204 @@
+"""End to end at the tiny profile: sweep -> MLflow -> report, failures, relaunch, single runs.
+
+The stages are fakes (tests/test_run_support.py) that report known metrics, so every number
+below is checked exactly; the sweep goes through the real CLI (``python -m pcrcg.run ... -m``,
+in-process), Hydra, the multirun callback, MLflow (a SQLite store in tmp_path) and the report.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from test_run_support import FAKES, expected_rr, make_conf, read_status_files, run_cli, tracked_runs
+
+N_POINTS = (5000, 2500, 1000, 500, 250)
+BENCHES = ("3DMatch", "3DLoMatch")
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    """window_size sweep three times (one job failing, relaunch, relaunch) + a backbone_2d sweep."""
+    root = tmp_path_factory.mktemp("e2e")
+    conf = make_conf(root / "conf")
+    uri = f"sqlite:///{root}/mlflow.db"
+    out = {"root": root, "conf": conf, "uri": uri}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+
+        def sweep_args(name: str, exp: str = "window_size") -> list[str]:
+            return ["--config-path", str(conf), f"+experiment={exp}", "profile=tiny", *FAKES,
+                    f"hydra.sweep.dir={root}/multirun/{name}", "-m"]
+
+        mp.setenv("PCRCG_FAKE_FAIL", "window_size=7")
+        out["rc_fail"] = run_cli(sweep_args("a"), root, mp)
+        out["status_fail"] = read_status_files(root / "multirun" / "a")
+        out["train_calls_1"] = (root / "train_calls.txt").read_text().splitlines()
+        out["report_md_1"] = (root / "reports" / "window_size.md").read_text()
+        mp.delenv("PCRCG_FAKE_FAIL")
+        out["rc_retry"] = run_cli(sweep_args("b"), root, mp)
+        out["status_retry"] = read_status_files(root / "multirun" / "b")
+        out["train_calls_2"] = (root / "train_calls.txt").read_text().splitlines()
+        out["rc_again"] = run_cli(sweep_args("c"), root, mp)
+        out["status_again"] = read_status_files(root / "multirun" / "c")
+        out["train_calls_3"] = (root / "train_calls.txt").read_text().splitlines()
+        out["rc_backbone"] = run_cli(sweep_args("d", "backbone_2d"), root, mp)
+        out["status_backbone"] = read_status_files(root / "multirun" / "d")
+    return out
+
+
+def _by_name(runs):
+    out: dict[str, list] = {}
+    for r in runs:
+        out.setdefault(r.info.run_name, []).append(r)
+    return out
+
+
+def test_failing_job_leaves_the_others_finished(sweep):
+    assert sweep["rc_fail"] == 1  # the command reports the failure at the end ...
+    status = {s["run_name"]: s["status"] for s in sweep["status_fail"]}
+    assert status == {"window_size=3": "finished", "window_size=7": "failed",
+                      "window_size=11": "finished", "window_size=17": "finished"}  # ... after all jobs ran
+    assert len(sweep["train_calls_1"]) == 4
+    runs = _by_name(tracked_runs(sweep["uri"], "window_size"))
+    failed = [r for r in runs["window_size=7"] if r.info.status == "FAILED"]
+    assert len(failed) == 1
+    assert failed[0].data.tags["error"] == "fake evaluate failure for window_size=7"
+    assert failed[0].data.tags["error_type"] == "RuntimeError"
+    # the report written after the sweep shows the failure as a dash with the reason
+    md = sweep["report_md_1"]
+    assert "failed: fake evaluate failure for window_size=7" in md
+    assert "| PCR-CG 7x7 (ours) | — [1] |" in md.replace(" — [1] |" * 4, "")
+
+
+def test_relaunch_runs_only_what_is_missing(sweep):
+    assert sweep["rc_retry"] == 0
+    status = {s["run_name"]: s["status"] for s in sweep["status_retry"]}
+    assert status == {"window_size=3": "skipped", "window_size=7": "finished",
+                      "window_size=11": "skipped", "window_size=17": "skipped"}
+    assert len(sweep["train_calls_2"]) == 5  # one new training
+    assert sweep["rc_again"] == 0
+    assert {s["status"] for s in sweep["status_again"]} == {"skipped"}
+    assert sweep["train_calls_3"] == sweep["train_calls_2"]  # the same command again trains nothing
+
+
+def test_finished_runs_carry_params_tags_metrics_and_artifacts(sweep):
+    runs = [r for r in tracked_runs(sweep["uri"], "window_size") if r.info.status == "FINISHED"]
+    assert sorted(r.info.run_name for r in runs) == ["window_size=11", "window_size=17", "window_size=3",
+                                                      "window_size=7"]
+    hashes = set()
+    for r in runs:
+        ws = int(r.info.run_name.split("=")[1])
+        tags, params, metrics = r.data.tags, r.data.params, r.data.metrics
+        assert tags["experiment"] == "window_size" and tags["profile"] == "tiny"
+        assert tags["label"] == "PCR-CG" and tags["method"] == "learned"
+        assert len(tags["git_sha"]) in (7, 40) or tags["git_sha"] == "unknown"
+        hashes.add(tags["config_hash"])
+        assert params["window_size"] == str(ws) and params["profile.name"] == "tiny"
+        assert params["features.name"] == "deep" and params["projection.name"] == "explicit"
+        assert params["eval.n_points"] == "[5000, 2500, 1000, 500, 250]"
+        assert params["protocol.3DLoMatch.n_pairs"] == "12"
+        for b in BENCHES:
+            for n in N_POINTS:
+                assert metrics[f"{b}/rr_{n}"] == pytest.approx(expected_rr(ws, 0, n, b))
+                assert metrics[f"{b}/fmr_{n}"] == 90.0 and metrics[f"{b}/ir_{n}"] == 30.0
+            assert metrics[f"{b}/rre"] == 2.0 and metrics[f"{b}/rte"] == 0.07
+        assert metrics["color_coverage"] == pytest.approx(0.6)
+        assert metrics["time/total_s"] > 0
+        client = __import__("mlflow").tracking.MlflowClient(sweep["uri"])
+        curve = client.get_metric_history(r.info.run_id, "train/loss")
+        assert [m.value for m in sorted(curve, key=lambda m: m.step)] == [1.0, 0.5, 0.25]
+        arts = {a.path for a in client.list_artifacts(r.info.run_id)}
+        assert {"config", "checkpoint", "est_logs", "plots", "metrics.json"} <= arts
+        cfg_files = {a.path for a in client.list_artifacts(r.info.run_id, "config")}
+        assert {"config/config.yaml", "config/overrides.yaml", "config/hydra"} <= cfg_files
+        est = {a.path for a in client.list_artifacts(r.info.run_id, "est_logs/3DLoMatch/scene-a")}
+        assert est == {"est_logs/3DLoMatch/scene-a/est.log"}
+        assert {a.path for a in client.list_artifacts(r.info.run_id, "plots")} == {"plots/recall_vs_points.png"}
+    assert len(hashes) == 4
+
+
+def test_report_after_the_sweep(sweep):
+    reports = sweep["root"] / "reports"
+    for suffix in ("md", "tex", "csv"):
+        assert (reports / f"window_size.{suffix}").is_file()
+    assert (reports / "window_size_recall.png").stat().st_size > 1000
+    assert (reports / "window_size_coverage.png").is_file()
+    df = pd.read_csv(reports / "window_size.csv")
+    assert len(df) == 4 * 5 and (df["status"] == "ok").all()
+    cell = df[(df["variant"] == "11x11") & (df["n_points"] == 1000)].iloc[0]
+    assert cell["paper"] == 69.0
+    assert cell["ours_mean"] == pytest.approx(expected_rr(11, 0, 1000, "3DLoMatch"), abs=1e-3)
+    assert cell["diff"] == pytest.approx(cell["ours_mean"] - 69.0, abs=1e-3)
+    assert cell["profiles"] == "tiny" and len(cell["run_ids"]) == 32 and len(cell["config_hashes"]) == 16
+
+
+def test_missing_weights_is_reported_as_not_run(sweep):
+    assert sweep["rc_backbone"] == 0  # "not run" is a reason, not a failure of the sweep
+    status = {s["run_name"]: s["status"] for s in sweep["status_backbone"]}
+    assert status == {"encoder2d=scratch": "finished", "encoder2d=imagenet": "not_run", "encoder2d=pri3d": "not_run"}
+    runs = _by_name(tracked_runs(sweep["uri"], "backbone_2d"))
+    rec = runs["encoder2d=imagenet"][0]
+    assert rec.info.status == "FAILED" and rec.data.tags["not_run"] == "true"
+    assert "encoder2d.weights" in rec.data.tags["error"]
+    md = (sweep["root"] / "reports" / "backbone_2d.md").read_text()
+    assert "not run: invalid config value encoder2d.weights=None" in md
+    df = pd.read_csv(sweep["root"] / "reports" / "backbone_2d.csv")
+    assert set(df[df["status"] == "missing"]["variant"]) == {"ImageNet", "Pri3D"}
+
+
+def test_classical_baseline_single_run_and_single_run_failure(sweep, monkeypatch, capsys):
+    root, conf = sweep["root"], sweep["conf"]
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", sweep["uri"])
+    calls = len((root / "train_calls.txt").read_text().splitlines())
+    args = ["--config-path", str(conf), "method=fpfh", "profile=tiny", "experiment_name=baselines", *FAKES,
+            f"hydra.run.dir={root}/single/fpfh"]
+    assert run_cli(args, root, monkeypatch) == 0
+    out = capsys.readouterr().out
+    assert "open the UI: mlflow ui --backend-store-uri " + sweep["uri"] in out
+    assert len((root / "train_calls.txt").read_text().splitlines()) == calls  # no training
+    runs = tracked_runs(sweep["uri"], "baselines")
+    assert len(runs) == 1 and runs[0].info.status == "FINISHED" and runs[0].data.tags["label"] == "FPFH"
+    assert runs[0].info.run_name == "method=fpfh"
+    # the same single run again is skipped
+    assert run_cli(args, root, monkeypatch) == 0
+    assert "skipped" in capsys.readouterr().out
+    # a failing single run is recorded and the command fails
+    monkeypatch.setenv("PCRCG_FAKE_FAIL", "method=icp")
+    bad = ["--config-path", str(conf), "method=icp", "profile=tiny", "experiment_name=baselines", *FAKES,
+           f"hydra.run.dir={root}/single/icp"]
+    assert run_cli(bad, root, monkeypatch) == 1
+    runs = _by_name(tracked_runs(sweep["uri"], "baselines"))
+    assert runs["method=icp"][0].info.status == "FAILED"
+
+
+def test_without_tracking(tmp_path, monkeypatch):
+    conf = make_conf(tmp_path / "conf")
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    args = ["--config-path", str(conf), "logger=none", "method=sift_dlt", "profile=tiny", *FAKES,
+            f"hydra.run.dir={tmp_path}/out"]
+    assert run_cli(args, tmp_path, monkeypatch) == 0
+    assert not (tmp_path / "mlflow.db").exists()
+    import json
+
+    data = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert data["metrics"]["3DMatch/rr"] == pytest.approx(expected_rr(11, 0, 5000, "3DMatch"))
+    assert (tmp_path / "out" / "pcrcg_status.json").is_file()
+
+
+@pytest.mark.slow
+def test_parallel_joblib_sweep_writes_one_store(tmp_path, monkeypatch):
+    """hydra/launcher=joblib2: two worker processes, one SQLite store created by the parent."""
+    conf = make_conf(tmp_path / "conf")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    tests_dir = str(Path(__file__).resolve().parent)
+    monkeypatch.setenv("PYTHONPATH", tests_dir)
+    args = ["--config-path", str(conf), "+experiment=window_size", "profile=tiny", *FAKES,
+            "hydra/launcher=joblib2", f"hydra.sweep.dir={tmp_path}/multirun", "runtime.report_on_end=false", "-m"]
+    assert run_cli(args, tmp_path, monkeypatch) == 0
+    runs = tracked_runs(uri, "window_size")
+    assert len(runs) == 4 and all(r.info.status == "FINISHED" for r in runs)
+    assert all(len(r.data.metrics) >= 2 * (3 * 5 + 3) for r in runs)

@@ -1,0 +1,162 @@
+"""MLflow helpers: store URI resolution, config hash, params, git sha, runs, failures, parallel writers."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from pcrcg.tracking.git import git_info
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, flatten
+from pcrcg.tracking.store import artifact_root, resolve_tracking_uri, sqlite_path, ui_command
+
+
+def test_uri_resolution_order(tmp_path):
+    env = {"MLFLOW_TRACKING_URI": "http://tracking:5000"}
+    assert resolve_tracking_uri("sqlite:////abs/x.db", tmp_path, env) == "sqlite:////abs/x.db"
+    assert resolve_tracking_uri(None, tmp_path, env) == "http://tracking:5000"
+    assert resolve_tracking_uri(None, tmp_path, {}) == f"sqlite:///{tmp_path.resolve()}/mlflow.db"
+    # a relative SQLite path is made absolute against the base folder (jobs may run elsewhere)
+    rel = resolve_tracking_uri(None, tmp_path, {"MLFLOW_TRACKING_URI": "sqlite:///stores/m.db"})
+    assert rel == f"sqlite:///{tmp_path.resolve()}/stores/m.db"
+    assert sqlite_path(rel) == tmp_path.resolve() / "stores" / "m.db"
+    assert artifact_root(rel) == (tmp_path.resolve() / "stores" / "mlartifacts").as_uri()
+    assert artifact_root("http://tracking:5000") is None
+    assert ui_command(rel) == f"mlflow ui --backend-store-uri {rel}"
+
+
+def _cfg(**over):
+    base = {
+        "experiment_name": "window_size", "seed": 0, "window_size": 11, "method": "learned", "icp_init": "identity",
+        "model": {"name": "predator", "dims": [64, 128]}, "eval": {"n_points": [5000, 250]},
+        "logger": {"name": "mlflow", "tracking_uri": None}, "paths": {"data": "data"},
+        "runtime": {"device": "auto"}, "stages": {"train": "a.b", "evaluate": "c.d"},
+    }
+    cfg = OmegaConf.create(base)
+    for k, v in over.items():
+        OmegaConf.update(cfg, k, v)
+    return cfg
+
+
+def test_config_hash_ignores_bookkeeping_and_sees_everything_else():
+    h = config_hash(_cfg())
+    assert len(h) == 16 and h == config_hash(_cfg())
+    for key, value in (("experiment_name", "other"), ("logger.tracking_uri", "sqlite:////x.db"),
+                       ("paths.data", "/elsewhere"), ("runtime.device", "cuda")):
+        assert config_hash(_cfg(**{key: value})) == h, key
+    for key, value in (("seed", 1), ("window_size", 7), ("model.dims", [64, 256]), ("eval.n_points", [5000]),
+                       ("stages.evaluate", "x.y")):
+        assert config_hash(_cfg(**{key: value})) != h, key
+    # the training hash also ignores evaluation-only settings (checkpoint reuse across them)
+    t = config_hash(_cfg(), TRAIN_HASH_EXCLUDE)
+    for key, value in (("method", "icp"), ("icp_init", "learned"), ("eval.n_points", [5000]), ("stages.evaluate", "x.y")):
+        assert config_hash(_cfg(**{key: value}), TRAIN_HASH_EXCLUDE) == t, key
+    assert config_hash(_cfg(window_size=7), TRAIN_HASH_EXCLUDE) != t
+
+
+def test_hash_is_independent_of_key_order():
+    a = OmegaConf.create({"a": 1, "b": {"x": 1, "y": 2}})
+    b = OmegaConf.create({"b": {"y": 2, "x": 1}, "a": 1})
+    assert config_hash(a) == config_hash(b)
+
+
+def test_flatten_params():
+    flat = flatten({"a": {"b": 1, "c": [1, 2], "d": None, "e": {}}, "f": "x"})
+    assert flat == {"a.b": "1", "a.c": "[1, 2]", "a.d": "null", "a.e": "{}", "f": "x"}
+    params = flat_params(_cfg())
+    assert params["model.dims"] == "[64, 128]" and params["window_size"] == "11"
+
+
+def test_git_info_reports_the_checkout():
+    sha, dirty = git_info()
+    assert sha == "unknown" or (len(sha) == 40 and all(c in "0123456789abcdef" for c in sha))
+    assert isinstance(dirty, bool)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    from pcrcg.tracking.store import ensure_store
+
+    uri = f"sqlite:///{tmp_path_factory.mktemp('store')}/mlflow.db"
+    ensure_store(uri)
+    return uri
+
+
+def test_runs_finished_lookup_and_failure_record(store):
+    from pcrcg.tracking.runs import RunTracker
+
+    tr = RunTracker(store, "unit")
+    assert tr.find_finished("h1") is None
+    failed = tr.start("window_size=3", {"config_hash": "h1"})
+    tr.fail(failed, ValueError("boom"))
+    assert tr.find_finished("h1") is None  # a failed run does not count as done
+    run = tr.client.get_run(failed)
+    assert run.info.status == "FAILED"
+    assert run.data.tags["error"] == "boom" and run.data.tags["error_type"] == "ValueError"
+    assert "error.txt" in [a.path for a in tr.client.list_artifacts(failed)]
+
+    done = tr.start("window_size=3", {"config_hash": "h1"})
+    tr.log_params(done, {f"p{i}": i for i in range(150)})  # more than one batch
+    tr.log_metrics(done, {"3DLoMatch/rr_5000": 61.0})
+    tr.log_history(done, {"train/loss": [1.0, 0.5, float("nan")], "val/loss": [(0, 2.0), (4, 1.0)]})
+    tr.finish(done)
+    found = tr.find_finished("h1")
+    assert found is not None and found.run_id == done and found.run_name == "window_size=3"
+    run = tr.client.get_run(done)
+    assert len(run.data.params) == 150 and run.data.metrics["3DLoMatch/rr_5000"] == 61.0
+    curve = tr.client.get_metric_history(done, "train/loss")
+    assert [(m.step, m.value) for m in curve] == [(0, 1.0), (1, 0.5)]
+    assert [m.step for m in tr.client.get_metric_history(done, "val/loss")] == [0, 4]
+
+    not_run = tr.start("encoder2d=imagenet", {"config_hash": "h2"})
+    from pcrcg.errors import ConfigError
+
+    tr.fail(not_run, ConfigError("encoder2d.weights", None, "a local file"), not_run=True)
+    assert tr.client.get_run(not_run).data.tags["not_run"] == "true"
+
+
+def test_experiment_creation_is_idempotent_and_artifacts_sit_beside_the_db(store):
+    from pcrcg.tracking.store import client, ensure_experiment
+
+    c = client(store)
+    a = ensure_experiment(c, "same", store)
+    assert ensure_experiment(c, "same", store) == a
+    loc = c.get_experiment(a).artifact_location
+    assert loc == f"{artifact_root(store)}/same"
+    c.delete_experiment(a)
+    assert ensure_experiment(c, "same", store) == a  # restored, not duplicated
+
+
+def _writer(uri: str, k: int, n: int) -> None:
+    from pcrcg.tracking.runs import RunTracker
+
+    tr = RunTracker(uri, "parallel")
+    for i in range(n):
+        rid = tr.start(f"w{k}-{i}", {"config_hash": f"{k}-{i}"})
+        tr.log_params(rid, {f"p{j}": j for j in range(40)})
+        tr.log_metrics(rid, {f"m{j}": float(j) for j in range(25)})
+        tr.finish(rid)
+
+
+def test_parallel_writers_on_one_existing_store(tmp_path):
+    """Two processes log into one SQLite store created beforehand: nothing is lost."""
+    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.store import client, ensure_experiment, ensure_store
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    ensure_store(uri)
+    ensure_experiment(client(uri), "parallel", uri)
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_writer, args=(uri, k, 3)) for k in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert all(p.exitcode == 0 for p in procs)
+    tr = RunTracker(uri, "parallel")
+    runs = tr.client.search_runs([tr.experiment_id], max_results=100)
+    assert len(runs) == 6
+    assert all(r.info.status == "FINISHED" and len(r.data.params) == 40 and len(r.data.metrics) == 25 for r in runs)
+    assert Path(tmp_path / "mlflow.db").is_file()

@@ -1,0 +1,80 @@
+"""Feature maps: rgb, dense SIFT (reduced, deterministic), deep (encoder output with gradients)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcrcg.errors import ConfigError
+from pcrcg.lifting.toyscene import make_pair
+from pcrcg.vision.encoders import ResUNet
+from pcrcg.vision.features import FeatureExtractor, build_feature_extractor, dense_sift_map, rgb_map, sift_projection
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return make_pair(1)
+
+
+def test_rgb_map_is_exact():
+    img = np.random.default_rng(0).integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    m = rgb_map(img)
+    assert m.shape == (3, 7, 9) and m.dtype == torch.float32
+    assert torch.allclose(m[:, 4, 2], torch.tensor(img[4, 2] / 255.0, dtype=torch.float32))
+
+
+def test_sift_projection_is_fixed_and_orthonormal():
+    P = sift_projection(24, seed=5)
+    assert P.shape == (24, 128)
+    assert np.allclose(P @ P.T, np.eye(24), atol=1e-5)
+    assert np.array_equal(P, sift_projection(24, seed=5))
+    assert not np.allclose(P, sift_projection(24, seed=6))
+    with pytest.raises(ConfigError):
+        sift_projection(200)
+
+
+def test_dense_sift_map(pair):
+    img = pair.src_views[0].color
+    m = dense_sift_map(img, dim=16, step=4)
+    assert m.shape == (16, 120, 160)
+    assert torch.equal(m, dense_sift_map(img, dim=16, step=4))
+    # step 3: keypoints sit on pixels 1, 4, 7, ...; there the map is the unit-norm reduced descriptor,
+    # in between it is interpolated (norm below 1)
+    m3 = dense_sift_map(img, dim=16, step=3)
+    norms = m3.norm(dim=0)
+    assert torch.allclose(norms[1::3, 1::3], torch.ones(40, 53), atol=1e-5)
+    assert norms[2::3, 2::3].mean() < 0.995
+    # different content gives different descriptors, a shifted image shifts them
+    other = dense_sift_map(pair.tgt_views[1].color, dim=16, step=4)
+    assert (m - other).abs().mean() > 0.05
+    shifted = np.ascontiguousarray(np.roll(img, 8, axis=1))
+    ms = dense_sift_map(shifted, dim=16, step=4)
+    assert (ms[:, 30:90, 48:120] - m[:, 30:90, 40:112]).abs().mean() < 0.2 * (m - other).abs().mean()
+
+
+def test_extractor_kinds(pair):
+    views = pair.src_views[:2]
+    assert FeatureExtractor("none", 0)(views) == []
+    rgb = FeatureExtractor("rgb", 3)(views)
+    assert len(rgb) == 2 and rgb[0].shape == (3, 120, 160)
+    sift = build_feature_extractor({"name": "sift", "dim": 8, "step": 4})(views)
+    assert sift[1].shape == (8, 120, 160)
+    with pytest.raises(ConfigError):
+        FeatureExtractor("rgb", 5)
+    with pytest.raises(ConfigError):
+        FeatureExtractor("hog", 5)
+    with pytest.raises(ConfigError):
+        FeatureExtractor("deep", 8, encoder=None)
+
+
+def test_deep_extractor_resizes_and_keeps_gradients(pair):
+    torch.manual_seed(0)
+    enc = ResUNet("resnet18", 8)
+    ext = FeatureExtractor("deep", 8, encoder=enc, image_size=(60, 80))
+    maps = ext(pair.src_views[:2] + pair.tgt_views[:1])
+    assert len(maps) == 3 and maps[0].shape == (8, 60, 80)
+    maps[0].sum().backward()
+    assert enc.encoder.conv1.weight.grad is not None and enc.encoder.conv1.weight.grad.abs().sum() > 0
+    with pytest.raises(ConfigError):
+        FeatureExtractor("deep", 16, encoder=enc)  # width must be the encoder's
