@@ -317,17 +317,21 @@ def check_sweep_params(params: Mapping[str, Any], search_dirs: Sequence[Path] = 
 
 
 def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = None,
-                        search_dirs: Sequence[Path] = (CONF_DIR,)) -> RunSchema:
+                        search_dirs: Sequence[Path] = (CONF_DIR,), data: Mapping[str, Any] | None = None) -> RunSchema:
     """Validate a composed run config; return its typed top-level part.
 
-    ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known.
+    ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known;
+    ``data``: ``cfg`` already resolved to plain containers (saves resolving it again).
     """
-    try:
-        data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    except OmegaConfBaseException as e:
-        raise ConfigError(str(getattr(e, "full_key", "") or "?"), "???", f"a value ({e.msg if hasattr(e, 'msg') else e})") from None
-    assert isinstance(data, dict)
-    data.pop("hydra", None)
+    if data is None:
+        try:
+            data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except OmegaConfBaseException as e:
+            msg = getattr(e, "msg", str(e))
+            raise ConfigError(str(getattr(e, "full_key", "") or "?"), "???", f"a value ({msg})") from None
+        assert isinstance(data, dict)
+        data.pop("hydra", None)
+    _check_missing(data)
 
     top = _structured_check(RunSchema, data, "")
     for group in GROUPS:
@@ -346,6 +350,15 @@ def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = Non
             raise ConfigError(f"{group}.name", name, _fmt(known))
     _check_rules(top, data)
     return top
+
+
+def _check_missing(data: Mapping[str, Any], prefix: str = "") -> None:
+    """A mandatory value left as ``???`` is an error naming it."""
+    for k, v in data.items():
+        if isinstance(v, Mapping):
+            _check_missing(v, f"{prefix}{k}.")
+        elif v == "???":
+            raise ConfigError(f"{prefix}{k}", v, "a value (it is mandatory)")
 
 
 def _group_name(data: Mapping[str, Any], group: str) -> str | None:

@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
 from pcrcg.errors import ConfigError, PcrcgError
-from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, to_plain
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.runs import RunTracker
@@ -273,11 +273,11 @@ def needs_training(cfg: DictConfig) -> bool:
 def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     """Run one configured job end to end (see module docstring). Returns what happened."""
     t0 = time.perf_counter()
-    validate_run_config(cfg, job.choices, job.search_dirs)
-    h = config_hash(cfg)
+    data = to_plain(cfg)  # resolved once: interpolation is the slow part of OmegaConf
+    validate_run_config(cfg, job.choices, job.search_dirs, data=data)
+    h = config_hash(data)
     name = run_name(job.overrides)
     job.output_dir.mkdir(parents=True, exist_ok=True)
-    data = to_plain(cfg)
 
     tracker = None
     if cfg.logger.name == "mlflow":
@@ -298,14 +298,14 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     run_id = None
     if tracker is not None:
         run_id = tracker.start(name, _tags(cfg, data, h, job))
-        tracker.log_params(run_id, flat_params(cfg))
-        _log_config_files(tracker, run_id, cfg, job)
+        tracker.log_params(run_id, flatten(data))
+        _log_config_files(tracker, run_id, data, job)
 
     ctx = RunContext(cfg=cfg, job=job, out_dir=job.output_dir, device=resolve_device(OmegaConf.select(cfg, "runtime.device")),
                      run_id=run_id, tracker=tracker)
     timings: dict[str, float] = {}
     try:
-        preflight(cfg)
+        preflight(data)
         t = time.perf_counter()
         ctx.data_root = Path(_stage(cfg.stages.prepare)(ctx))
         timings["time/prepare_s"] = time.perf_counter() - t
@@ -373,11 +373,11 @@ def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dic
     return tags
 
 
-def _log_config_files(tracker: "RunTracker", run_id: str, cfg: DictConfig, job: JobInfo) -> None:
+def _log_config_files(tracker: "RunTracker", run_id: str, data: Mapping[str, Any], job: JobInfo) -> None:
     """Resolved config and overrides (and Hydra's own .hydra/ files when present) as artifacts."""
     cdir = job.output_dir / "config"
     cdir.mkdir(parents=True, exist_ok=True)
-    (cdir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (cdir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(dict(data))))
     (cdir / "overrides.yaml").write_text("".join(f"- {o}\n" for o in job.overrides) or "[]\n")
     tracker.log_artifact(run_id, cdir, "config")
     hydra_dir = job.output_dir / ".hydra"

@@ -18,7 +18,8 @@ from pcrcg.models.module import PCRCGModule
 from pcrcg.models.toy import toy_pair
 from pcrcg.models.train import infer, infer_clouds, load_module, load_pair_output, save_pair_output, train
 
-MODEL = dict(name="predator", voxel_size=0.12, num_layers=3, first_dim=16, final_dim=16, gnn_dim=16, num_heads=2,
+VOXEL, DENSITY = 0.15, 100.0
+MODEL = dict(name="predator", voxel_size=VOXEL, num_layers=3, first_dim=16, final_dim=16, gnn_dim=16, num_heads=2,
              dgcnn_k=6, max_points=3000, loss=dict(matchability_after_recall=0.0))
 
 
@@ -35,7 +36,7 @@ def write_toy_layout(root: Path, n_pairs: int = 2) -> Path:
     """A data set in the 3DMatch layout: toy pairs as fragments 0/1 of scenes toy<k>, train and val."""
     records = []
     for k in range(n_pairs):
-        s = toy_pair(k, density=150.0)
+        s = toy_pair(k, density=DENSITY)
         d = root / "fragments" / s.scene
         d.mkdir(parents=True, exist_ok=True)
         write_ply(d / f"cloud_bin_{s.i}.ply", s.tgt_points)
@@ -53,10 +54,10 @@ def toy_root(tmp_path_factory) -> Path:
 
 
 def fixed_batch(seed: int = 0):
-    s = toy_pair(seed, density=150.0)
-    spec = PyramidSpec(0.12, 3, 2.5)
-    spec = PyramidSpec(0.12, 3, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
-    return PairCollate(spec, overlap_radius=0.18)([s])
+    s = toy_pair(seed, density=DENSITY)
+    spec = PyramidSpec(VOXEL, 3, 2.5)
+    spec = PyramidSpec(VOXEL, 3, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
+    return PairCollate(spec, overlap_radius=1.5 * VOXEL)([s])
 
 
 def test_a_few_steps_lower_the_loss():
@@ -67,13 +68,13 @@ def test_a_few_steps_lower_the_loss():
     opt = module.configure_optimizers()["optimizer"]
     assert opt.defaults["lr"] == 0.005 and opt.defaults["momentum"] == 0.98
     losses = []
-    for _ in range(10):
+    for _ in range(8):
         out, _ = module(batch)
         stats = module.compute_stats(batch, out)
         opt.zero_grad()
         stats["loss"].backward()
         opt.step()
-        losses.append(float(stats["loss"]))
+        losses.append(float(stats["loss"].detach()))
     assert np.mean(losses[-3:]) < 0.9 * np.mean(losses[:3]), losses
 
 
@@ -129,7 +130,7 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
         np.testing.assert_allclose(np.linalg.norm(frag.descriptors, axis=1), 1.0, atol=1e-5)
         assert frag.points.dtype == np.float32
     # outputs are in the fragments' own frames: the stored ground truth maps src onto tgt
-    s = toy_pair(0, density=150.0)
+    s = toy_pair(0, density=DENSITY)
     np.testing.assert_allclose(o.transform, s.transform, atol=1e-5)
     # a reloaded checkpoint gives the same numbers (deterministic inference)
     o2 = next(infer(again, toy_root, "val", progress=False))
@@ -144,10 +145,10 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
 
 
 def test_datamodule_calibrates_and_restores_limits(toy_root):
-    dm = PairDataModule(toy_root, voxel_size=0.12, num_layers=3)
+    dm = PairDataModule(toy_root, voxel_size=VOXEL, num_layers=3)
     dm.setup("fit")
     assert dm.limits is not None and len(dm.limits) == 3
-    other = PairDataModule(toy_root, voxel_size=0.12, num_layers=3)
+    other = PairDataModule(toy_root, voxel_size=VOXEL, num_layers=3)
     other.load_state_dict(dm.state_dict())
     assert other.limits == dm.limits
     batch = next(iter(dm.train_dataloader()))
@@ -157,7 +158,7 @@ def test_datamodule_calibrates_and_restores_limits(toy_root):
     p = batch.pyramid.points[0].double()
     src = p[:ns] @ batch.transform[:3, :3].double().T + batch.transform[:3, 3].double()
     d = (src[batch.corr[:, 0]] - p[ns:][batch.corr[:, 1]]).norm(dim=1)
-    assert float(d.max()) < 0.18 + 0.02  # overlap radius + augmentation noise
+    assert float(d.max()) < 1.5 * VOXEL + 0.02  # overlap radius + augmentation noise
 
 
 # --------------------------------------------------------------------------- color branch

@@ -150,14 +150,16 @@ class PCRCGModule(L.LightningModule):
     def training_step(self, batch: PairBatch, batch_idx: int):
         if batch.corr.shape[0] == 0:  # no overlap after subsampling: nothing to learn from this pair
             self.skipped_pairs += 1
-            self.log("train/skipped_pairs", float(self.skipped_pairs), batch_size=1)
+            if self._trainer is not None:
+                self.log("train/skipped_pairs", float(self.skipped_pairs), batch_size=1)
             return None
         out, coverage = self(batch)
         stats = self.compute_stats(batch, out)
-        self.log_dict({f"train/{k}": stats[k].detach() for k in STAT_KEYS}, batch_size=1, prog_bar=False)
-        self.log("train/loss_step", stats["loss"].detach(), batch_size=1, prog_bar=True, logger=False)
-        if coverage == coverage:
-            self.log("train/color_coverage", coverage, batch_size=1)
+        if self._trainer is not None:
+            self.log_dict({f"train/{k}": stats[k].detach() for k in STAT_KEYS}, batch_size=1, prog_bar=False)
+            self.log("train/loss_step", stats["loss"].detach(), batch_size=1, prog_bar=True, logger=False)
+            if coverage == coverage:
+                self.log("train/color_coverage", coverage, batch_size=1)
         return stats["loss"]
 
     def validation_step(self, batch: PairBatch, batch_idx: int) -> None:
