@@ -38,7 +38,8 @@ N_POINTS = (5000, 2500, 1000, 500, 250)
 MAX_WINDOW = 101
 
 # config groups composed by conf/run.yaml, in its defaults order
-GROUPS = ("data", "profile", "model", "encoder2d", "features", "projection", "matcher2d", "trainer", "logger")
+GROUPS = ("data", "profile", "model", "encoder2d", "features", "projection", "matcher2d", "trainer", "registration",
+          "logger")
 # the implementations the code knows; a group folder's option files are checked against this
 KNOWN_OPTIONS: dict[str, tuple[str, ...]] = {
     "data": ("synthmatch", "redkitchen", "threedmatch"),
@@ -86,6 +87,7 @@ class EvalSchema:
     inlier_distance: float = 0.1
     fmr_threshold: float = 0.05
     rmse_threshold: float = 0.2
+    predator_variant: bool = False
     max_pairs: Optional[int] = None
 
     def __post_init__(self) -> None:

@@ -14,6 +14,7 @@ a bad file is an error that names it.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.errors import ConfigError, DataError
+from pcrcg.errors import ConfigError, DataError, PcrcgError
 
 MODES = ("score", "pair", "benchmark")
 
@@ -157,7 +158,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    print(json.dumps(run(cfg)))
+    try:
+        result = run(cfg)
+    except PcrcgError as exc:  # bad input: one clear line naming the file or setting, no traceback
+        print(f"pcrcg.evaluate: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

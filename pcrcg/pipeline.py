@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -62,6 +63,7 @@ class TrainOutput:
     metrics: dict[str, float] = field(default_factory=dict)
     artifacts: list[tuple[Path, str | None]] = field(default_factory=list)
     reused: bool = False
+    curves_logged: bool = False  # the trainer's logger already wrote ``history`` into the run
 
 
 @dataclass
@@ -200,6 +202,9 @@ def make_lightning_logger(uri: str, experiment_name: str, run_id: str):
     from lightning.pytorch.loggers import MLFlowLogger
 
     class _OpenRunMLFlowLogger(MLFlowLogger):
+        def log_hyperparams(self, params) -> None:  # the run already holds the whole config as params
+            pass
+
         def finalize(self, status: str = "success") -> None:  # keep the run open
             if self._initialized and self._checkpoint_callback:
                 self._scan_and_log_checkpoints(self._checkpoint_callback)
@@ -224,31 +229,50 @@ def prepare_data(ctx: RunContext) -> Path:
 def train_model(ctx: RunContext) -> TrainOutput:
     """Train the learned model, or reuse the checkpoint of an identical training config.
 
-    Checkpoints are cached under ``paths.checkpoints/<train hash>/`` (the hash leaves out
-    evaluation-only settings), so sweeps over evaluation settings train once.
+    Training happens in ``paths.checkpoints/<train hash>/train`` (the hash leaves out
+    evaluation-only settings), so that (a) sweeps over evaluation settings train once, (b) a
+    relaunched sweep resumes a crashed training from its ``last.ckpt``, and (c) jobs that need
+    the same model wait for each other (a file lock) instead of training it twice.
     """
+    from filelock import FileLock
+
     key = config_hash(ctx.cfg, TRAIN_HASH_EXCLUDE)
     cache = ctx.path("checkpoints") / key
     ckpt = cache / "model.ckpt"
     hist_file = cache / "history.json"
-    if ckpt.is_file() and bool(OmegaConf.select(ctx.cfg, "runtime.reuse_checkpoints", default=True)):
-        history = json.loads(hist_file.read_text()) if hist_file.is_file() else {}
-        print(f"[run] reusing checkpoint {ckpt} (same training config {key})")
-        return TrainOutput(checkpoint=ckpt, history=history, reused=True)
-    train = _need("pcrcg.models.train", "train", "train")
     cache.mkdir(parents=True, exist_ok=True)
-    result = train(ctx.cfg, data_root=ctx.data_root, out_dir=ctx.out_dir / "train",
-                   logger=ctx.lightning_logger(), device=ctx.device)
-    out = result if isinstance(result, TrainOutput) else TrainOutput(checkpoint=Path(result["checkpoint"]),
-                                                                    history=dict(result.get("history", {})),
-                                                                    metrics=dict(result.get("metrics", {})))
-    if out.checkpoint is not None and Path(out.checkpoint).is_file():
-        tmp = cache / f"model.ckpt.tmp-{os.getpid()}"
-        tmp.write_bytes(Path(out.checkpoint).read_bytes())
-        os.replace(tmp, ckpt)
-        hist_file.write_text(json.dumps(out.history))
-        out.checkpoint = ckpt
+    with FileLock(str(cache / ".lock")):
+        if ckpt.is_file() and bool(OmegaConf.select(ctx.cfg, "runtime.reuse_checkpoints", default=True)):
+            history = json.loads(hist_file.read_text()) if hist_file.is_file() else {}
+            print(f"[run] reusing checkpoint {ckpt} (same training config {key})")
+            return TrainOutput(checkpoint=ckpt, history=history, reused=True)
+        train = _need("pcrcg.models.train", "train", "train")
+        logger = ctx.lightning_logger()
+        result = train(ctx.cfg, data_root=ctx.data_root, out_dir=cache / "train", logger=logger or None,
+                       device=ctx.device)
+        out = result if isinstance(result, TrainOutput) else TrainOutput(
+            checkpoint=Path(result["checkpoint"]) if result.get("checkpoint") else None,
+            history=dict(result.get("history") or {}), metrics=dict(result.get("metrics") or {}))
+        if not out.history and ctx.tracker is not None and ctx.run_id is not None:
+            out.history = _curves(ctx)
+            out.curves_logged = True
+        if out.checkpoint is not None and Path(out.checkpoint).is_file():
+            tmp = cache / f"model.ckpt.tmp-{os.getpid()}"
+            shutil.copyfile(out.checkpoint, tmp)
+            os.replace(tmp, ckpt)
+            hist_file.write_text(json.dumps(out.history))
+            (cache / "source.json").write_text(json.dumps({"run_id": ctx.run_id, "experiment": ctx.cfg.experiment_name,
+                                                           "train_hash": key}))
+            out.checkpoint = ckpt
     return out
+
+
+def _curves(ctx: RunContext) -> dict[str, list]:
+    """Training curves the Lightning logger wrote into this run: ``{name: [(step, value)]}``."""
+    assert ctx.tracker is not None and ctx.run_id is not None
+    client = ctx.tracker.client
+    names = [k for k in client.get_run(ctx.run_id).data.metrics if not k.startswith("time/")]
+    return {k: [(m.step, m.value) for m in client.get_metric_history(ctx.run_id, k)] for k in names}
 
 
 def evaluate_method(ctx: RunContext) -> EvalOutput:
@@ -388,13 +412,20 @@ def _log_config_files(tracker: "RunTracker", run_id: str, data: Mapping[str, Any
 def _log_training(ctx: RunContext, trained: TrainOutput) -> None:
     if ctx.tracker is None or ctx.run_id is None:
         return
-    if trained.history:
+    if trained.history and not trained.curves_logged:
         ctx.tracker.log_history(ctx.run_id, trained.history)
     if trained.metrics:
         ctx.tracker.log_metrics(ctx.run_id, trained.metrics)
-    if trained.reused:
-        ctx.tracker.set_tags(ctx.run_id, {"checkpoint_reused": str(trained.checkpoint)})
-    if trained.checkpoint is not None and bool(ctx.cfg.logger.log_checkpoint):
+    if trained.checkpoint is None or not bool(ctx.cfg.logger.log_checkpoint):
+        pass
+    elif trained.reused:  # the run that trained it holds the file: point to it instead of a copy
+        src = Path(trained.checkpoint).parent / "source.json"
+        source = json.loads(src.read_text()) if src.is_file() else {}
+        ctx.tracker.set_tags(ctx.run_id, {"checkpoint_reused": str(trained.checkpoint),
+                                          "checkpoint_run": source.get("run_id") or "unknown"})
+        ctx.tracker.log_text(ctx.run_id, json.dumps({"checkpoint": str(trained.checkpoint), **source}, indent=1),
+                             "checkpoint/reused_from.json")
+    else:
         ctx.tracker.log_artifact(ctx.run_id, trained.checkpoint, "checkpoint")
     for path, folder in trained.artifacts:
         ctx.tracker.log_artifact(ctx.run_id, path, folder)
@@ -425,8 +456,10 @@ def _write_outputs(ctx: RunContext, metrics: Mapping[str, float], result: EvalOu
 
 def _print_where(cfg: DictConfig, outcome: RunOutcome) -> None:
     lines = [f"[run] finished {outcome.run_name!r} in {outcome.seconds:.1f} s (config hash {outcome.config_hash})"]
+    import re
+
     for key in sorted(outcome.metrics):
-        if key.endswith(("rr_5000", "rr_1000", "rr_250")) or key == "color_coverage":
+        if re.search(r"/rr(_\d+)?$", key) or key == "color_coverage":
             v = outcome.metrics[key]
             lines.append(f"      {key} = {v:.2f}" if not math.isnan(v) else f"      {key} = nan")
     lines.append(f"      outputs: {outcome.output_dir}")

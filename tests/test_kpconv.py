@@ -223,3 +223,21 @@ def test_stack_pair_offsets_and_shadows():
     up = st.upsamples[0].numpy()
     n1a = len(a.points[1])
     assert up[: len(a.points[0])].max() < n1a and up[len(a.points[0]):].min() >= n1a
+
+
+def test_influence_cache_is_shared_within_a_level_and_exact():
+    rng = np.random.default_rng(4)
+    pts = torch.from_numpy(rng.uniform(0, 1, (80, 3)).astype(np.float32))
+    nb = torch.from_numpy(radius_neighbors(pts.numpy(), pts.numpy(), 0.3, 16))
+    a, b = KPConv(4, 6, radius=0.25, extent=0.2), KPConv(6, 6, radius=0.25, extent=0.2)
+    c = KPConv(4, 6, radius=0.5, extent=0.4)  # another level: its own influence
+    x = torch.randn(80, 4)
+    cache: dict = {}
+    ya = a(pts, pts, nb, x, cache)
+    assert len(cache) == 1
+    yb = b(pts, pts, nb, torch.randn(80, 6), cache)
+    assert len(cache) == 1  # same neighbours, kernel and extent: shared
+    c(pts, pts, nb, x, cache)
+    assert len(cache) == 2
+    torch.testing.assert_close(ya, a(pts, pts, nb, x))  # identical to the uncached path
+    assert yb.shape == (80, 6)

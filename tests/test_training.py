@@ -11,7 +11,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from pcrcg.data.layout import PairRecord, write_pairs, write_ply
+from pcrcg.data.layout import PairRecord, write_gt_log, write_pairs, write_ply
 from pcrcg.models.datamodule import PairCollate, PairDataModule
 from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
 from pcrcg.models.module import PCRCGModule
@@ -41,7 +41,10 @@ def write_toy_layout(root: Path, n_pairs: int = 2) -> Path:
         d.mkdir(parents=True, exist_ok=True)
         write_ply(d / f"cloud_bin_{s.i}.ply", s.tgt_points)
         write_ply(d / f"cloud_bin_{s.j}.ply", s.src_points)
-        records.append(PairRecord(s.scene, s.i, s.j, s.transform, s.overlap))
+        records.append(PairRecord(s.scene, s.i, s.j, s.transform, s.overlap, n_fragments=2))
+        bench = root / "benchmarks" / "3DMatch" / s.scene
+        bench.mkdir(parents=True, exist_ok=True)
+        write_gt_log(bench / "gt.log", records[-1:])
     (root / "pairs").mkdir(parents=True, exist_ok=True)
     write_pairs(root / "pairs" / "train.txt", records)
     write_pairs(root / "pairs" / "val.txt", records[:1])
@@ -135,6 +138,12 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
     # a reloaded checkpoint gives the same numbers (deterministic inference)
     o2 = next(infer(again, toy_root, "val", progress=False))
     np.testing.assert_allclose(o.src.descriptors, o2.src.descriptors, atol=1e-5)
+    # the evaluation stage's hook, on a test benchmark
+    from pcrcg.models.predict import predict_benchmark
+
+    bench = list(predict_benchmark(None, toy_root, best, "3DMatch", device="cpu", progress=False))
+    assert [(b.scene, b.i, b.j) for b in bench] == [("toy0", 0, 1), ("toy1", 0, 1)]
+    np.testing.assert_allclose(bench[0].tgt.descriptors, o.tgt.descriptors, atol=1e-5)
     # user clouds, and the .npz hand-over to the registration stage
     oc = infer_clouds(module, s.src_points, s.tgt_points)
     np.testing.assert_allclose(oc.src.descriptors, o.src.descriptors, atol=1e-5)

@@ -1,6 +1,6 @@
 """Registration speed and recall: ours vs Predator's evaluation path, side by side in one run.
 
-    python -m pcrcg.benchmarks.registration [--pairs 24] [--n-points 5000 2500 1000 500 250]
+    python -m pcrcg.benchmarks.registration [--pairs 16] [--n-points 5000 2500 1000 500 250]
 
 Pairs: two depth frames of the real Kinect sequence in ``../shared/data/real-rgbd/
 redkitchen-frames`` back-projected and voxelised at 2.5 cm (Predator's voxel), cropped to
@@ -22,18 +22,25 @@ For every N it reports, per pair and averaged:
   on identical correspondence sets with identical settings (confidence 0.999).
 
 Success = the 3DMatch criterion (``e^T info e / info[0,0] <= 0.2^2`` with ``info`` from the
-pair's ground-truth overlap). Timings are wall-clock on this machine, interleaved pair by pair.
+pair's ground-truth overlap). Timings are wall-clock, interleaved pair by pair, with
+``OMP_NUM_THREADS=1`` unless set (one core each: on a shared 2-core machine OpenMP with 2 threads
+made both Open3D and torch many times slower and the figures noisy).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import time
-from dataclasses import dataclass
-from pathlib import Path
+import os
 
-import numpy as np
+if __name__ == "__main__":  # before NumPy / torch / Open3D start their thread pools
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 FRAMES = SHARED / "data" / "real-rgbd" / "redkitchen-frames"
@@ -88,22 +95,15 @@ def _frame_clouds(rng: np.random.Generator, n_pairs: int):
 
 
 def _room_clouds(rng: np.random.Generator, n_pairs: int):
-    """Fallback without ../shared: a box room with furniture, split into overlapping parts."""
-    def plane(o, u, v, n):
-        s = rng.random((n, 2))
-        return o + s[:, :1] * u + s[:, 1:] * v
+    """Fallback without ../shared: a synthetic room, split into overlapping parts."""
+    from pcrcg.registration.synthetic import box_room
 
-    parts = [plane(np.zeros(3), [4, 0, 0], [0, 3, 0], 40000), plane(np.zeros(3), [4, 0, 0], [0, 0, 2.5], 25000),
-             plane(np.zeros(3), [0, 3, 0], [0, 0, 2.5], 20000), plane([4, 0, 0], [0, 3, 0], [0, 0, 2.5], 20000)]
-    for _ in range(8):
-        c = rng.uniform([0.3, 0.3, 0], [3.5, 2.5, 0]); e = rng.uniform(0.2, 0.8, 3)
-        parts += [plane(c, [e[0], 0, 0], [0, e[1], 0], 1500) + [0, 0, e[2]],
-                  plane(c, [e[0], 0, 0], [0, 0, e[2]], 1200), plane(c, [0, e[1], 0], [0, 0, e[2]], 1200)]
-    room = np.concatenate(parts)
+    room, _ = box_room(rng, 120000)
+    lo, hi = room[:, 0].min(), room[:, 0].max()
     out = []
     for _ in range(n_pairs):
         crop = rng.uniform(0.15, 0.42)
-        out.append((room[room[:, 0] < 4 * (1 - crop)], room[room[:, 0] > 4 * crop]))
+        out.append((room[room[:, 0] < lo + (hi - lo) * (1 - crop)], room[room[:, 0] > lo + (hi - lo) * crop]))
     return out
 
 
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
     from pcrcg.registration.ransac import RansacConfig, ransac, ransac_open3d
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--pairs", type=int, default=24)
+    ap.add_argument("--pairs", type=int, default=16)
     ap.add_argument("--n-points", type=int, nargs="+", default=[5000, 2500, 1000, 500, 250])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--iterations", type=int, default=50000)

@@ -21,7 +21,7 @@ from pathlib import Path
 from pcrcg.config import CONF_DIR, load_run_config
 from pcrcg.pipeline import EvalOutput, JobInfo, RunContext, TrainOutput, run_job
 
-_NEEDED = {"model": ["predator"], "trainer": ["default"], "data": ["synthmatch"], "encoder2d": ["scratch"],
+_NEEDED = {"model": ["predator"], "trainer": ["default"], "registration": ["default"], "data": ["synthmatch"], "encoder2d": ["scratch"],
            "features": ["none", "deep"], "projection": ["none", "explicit"], "matcher2d": ["sift"]}
 
 

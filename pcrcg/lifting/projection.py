@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pcrcg.errors import ConfigError
 from pcrcg.geometry import invert, scale_intrinsics
 from pcrcg.lifting.config import LiftingConfig
 
@@ -44,9 +45,6 @@ class ViewKeypoints:
 
     def __len__(self) -> int:
         return len(self.confidence)
-
-
-WeightSpec = "ViewKeypoints | np.ndarray | torch.Tensor | None"
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -178,13 +176,9 @@ class ColorLifter(nn.Module):
             from pcrcg.vision.features import FeatureExtractor
 
             if cfg.features == "deep":
-                from pcrcg.errors import ConfigError
-
                 raise ConfigError("encoder2d", None, "an encoder (FeatureExtractor) for features=deep; use build_lifter(cfg)")
             extractor = FeatureExtractor(cfg.features, cfg.out_dim)
         if extractor is not None and cfg.out_dim > 0 and getattr(extractor, "out_dim", cfg.out_dim) != cfg.out_dim:
-            from pcrcg.errors import ConfigError
-
             raise ConfigError("features.dim", cfg.feature_dim, f"the feature extractor's width ({extractor.out_dim})")
         self.extractor = extractor if cfg.out_dim > 0 else None
         self.matcher = matcher

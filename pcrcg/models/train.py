@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -96,6 +97,8 @@ def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Seque
 
         callbacks.append(LearningRateMonitor(logging_interval="epoch"))
     max_steps = tcfg.get("max_steps")
+    # PairBatch moves itself (PCRCGModule.transfer_batch_to_device): the notice about it is noise
+    warnings.filterwarnings("ignore", message=".*overridden `transfer_batch_to_device`.*")
     trainer = L.Trainer(
         default_root_dir=str(out_dir),
         accelerator=tcfg.get("accelerator", "auto"),

@@ -103,7 +103,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
     from omegaconf import OmegaConf
 
-    from pcrcg.lifting.coverage import load_samples
     from pcrcg.vision.matching import MatchCache, MatcherConfig
 
     args = OmegaConf.from_dotlist(list(sys.argv[1:] if argv is None else argv))

@@ -84,6 +84,8 @@ def dataset_figure(root: str | Path, scene: str | None = None, out: str | Path =
         ax_a, ax_b = axes[2, 2 * col], axes[2, 2 * col + 1]
         if not recs:
             ax_a.set_title(f"{bench}: no pair in {scene}")
+            ax_a.axis("off")
+            ax_b.axis("off")
             continue
         ov = read_gt_overlap(d / "gt_overlap.log")
         r = recs[0]

@@ -23,13 +23,21 @@ def match_descriptors(
     mutual: bool = False,
     device: str | torch.device | None = None,
     chunk: int = 4096,
+    threads: int = 1,
 ) -> np.ndarray:
     """Putative correspondences (K, 2) int64 (source index, target index).
 
     desc_src (N, D), desc_tgt (M, D). Each source point is matched to its nearest target
     descriptor (K = N); with ``mutual`` only pairs that are each other's nearest neighbour are
-    kept, in source order.
+    kept, in source order. ``threads``: torch CPU threads meanwhile (0 = torch's setting).
     """
+    from pcrcg.registration.ransac import torch_threads
+
+    with torch_threads(threads, device):
+        return _match(desc_src, desc_tgt, mutual, device, chunk)
+
+
+def _match(desc_src, desc_tgt, mutual, device, chunk) -> np.ndarray:
     dev = torch.device(device) if device is not None else torch.device("cpu")
     a = torch.as_tensor(np.asarray(desc_src) if not torch.is_tensor(desc_src) else desc_src, dtype=torch.float32, device=dev)
     b = torch.as_tensor(np.asarray(desc_tgt) if not torch.is_tensor(desc_tgt) else desc_tgt, dtype=torch.float32, device=dev)

@@ -17,7 +17,7 @@ import torch
 
 from pcrcg.errors import ConfigError
 from pcrcg.registration.matching import match_descriptors
-from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d
+from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d, torch_threads
 from pcrcg.registration.sampling import SAMPLING_MODES, sample_indices
 
 BACKENDS = ("torch", "open3d")
@@ -129,6 +129,11 @@ def register_features(
 ) -> FeatureRegistration:
     """Register one pair: sample ``n_points`` per fragment, match, RANSAC."""
     cfg = cfg or RegistrationConfig()
+    with torch_threads(cfg.ransac.threads, cfg.device):
+        return _register_features(src, tgt, n_points, cfg, seed)
+
+
+def _register_features(src, tgt, n_points, cfg, seed) -> FeatureRegistration:
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
     s_sample, s_ransac = ss.spawn(2)
     rng = np.random.default_rng(s_sample)

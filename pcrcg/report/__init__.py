@@ -21,7 +21,7 @@ from pcrcg.report.plots import plot_coverage, plot_table_recall
 from pcrcg.report.render import to_latex, to_markdown, write_csv
 from pcrcg.report.runs import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs
-from pcrcg.report.tables import FilledTable, fill_table, load_paper, trend_agreement
+from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 
 __all__ = ["ReportResult", "generate_report", "tables_for_experiment"]
 
@@ -120,20 +120,16 @@ def _store_text(uri: str, base: Path) -> str:
 
 
 def _protocol(runs: pd.DataFrame) -> list[str]:
-    """Protocol facts of the runs: pair counts per benchmark, RANSAC and metric settings, seeds."""
+    """Protocol facts of the finished runs: per benchmark pairs and RANSAC, settings, seeds, code."""
     if runs.empty:
         return ["No runs yet."]
     done = runs[runs["status"] == "FINISHED"]
-    lines = []
-    cols = sorted(c for c in done.columns if c.startswith(("params.protocol.", "params.eval.")))
-    for col in cols:
+    lines = [f"- {line}" for line in protocol_summary(done)]
+    for col in sorted(c for c in done.columns if c.startswith("params.eval.")):
         vals = done[col].dropna().astype(str).value_counts()
         if len(vals):
             text = ", ".join(f"{v}" + (f" ({n} runs)" if len(vals) > 1 else "") for v, n in vals.items())
             lines.append(f"- `{col[len('params.'):]}`: {text}")
-    if "params.seed" in done.columns:
-        seeds = sorted(done["params.seed"].dropna().astype(str).unique(), key=lambda s: (len(s), s))
-        lines.append(f"- seeds: {', '.join(seeds)}")
     if "tags.git_sha" in done.columns:
         shas = done["tags.git_sha"].dropna().astype(str).str[:7].unique()
         lines.append(f"- code (git sha): {', '.join(sorted(shas))}")

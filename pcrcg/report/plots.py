@@ -32,19 +32,22 @@ def plot_run_recall(metrics: Mapping[str, float], path: Path, title: str = "") -
         return None
     plt = _plt()
     names = [m for m in ("rr", "fmr", "ir") if m in series]
+    sizes = sorted({n for m in names for pts in series[m].values() for n, _ in pts})
+    pos = {n: i for i, n in enumerate(sizes)}  # evenly spaced like a log axis, without its cost
     fig, axes = plt.subplots(1, len(names), figsize=(4 * len(names), 3.2), squeeze=False)
     for ax, name in zip(axes[0], names):
         for bench, pts in sorted(series[name].items()):
             pts.sort()
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=bench)
-        ax.set_xscale("log")
+            ax.plot([pos[p[0]] for p in pts], [p[1] for p in pts], marker="o", label=bench)
+        ax.set_xticks(range(len(sizes)))
+        ax.set_xticklabels([str(n) for n in sizes])
         ax.set_xlabel("# sampled points")
         ax.set_ylabel(f"{name.upper()} (%)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.17, top=0.86, wspace=0.3)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -61,7 +64,9 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
         return None
     plt = _plt()
     keys = list(panels)
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys), 3.6), squeeze=False)
+    sizes = sorted({c.col.n_points for cells in panels.values() for c in cells})
+    pos = {n: i for i, n in enumerate(sizes)}
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys) + 2.8, 3.6), squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, key in zip(axes[0], keys):
         cells = panels[key]
@@ -71,24 +76,25 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
             ours = [c for c in rc if c.mean is not None]
             paper = [c for c in rc if c.paper is not None]
             if ours:
-                ax.errorbar([c.col.n_points for c in ours], [c.mean for c in ours],
+                ax.errorbar([pos[c.col.n_points] for c in ours], [c.mean for c in ours],
                             yerr=[c.std or 0.0 for c in ours], color=color, marker="o", capsize=2,
                             label=f"{row.text} (ours)")
             if paper:
-                ax.plot([c.col.n_points for c in paper], [c.paper for c in paper], color=color,
-                        linestyle="--", marker="x", alpha=0.8, label=f"{row.text} (paper)")
-        ax.set_xscale("log")
-        ax.set_xticks([250, 500, 1000, 2500, 5000])
-        ax.set_xticklabels(["250", "500", "1000", "2500", "5000"])
+                ax.plot([pos[c.col.n_points] for c in paper], [c.paper for c in paper], color=color,
+                        linestyle="--", marker="x", alpha=0.7, label=f"{row.text} (paper)")
+        ax.set_xticks(range(len(sizes)))
+        ax.set_xticklabels([str(n) for n in sizes])
         ax.set_xlabel("# sampled points")
         ax.set_ylabel(f"{key[0]} (%)")
         ax.set_title(key[1], fontsize=10)
         ax.grid(alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
+    legend_w = 2.8 / fig.get_figwidth()
     if handles:
-        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=7, frameon=False)
-    fig.suptitle(table.spec.title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.08 + 0.03 * (len(labels) // 4), 1, 0.95))
+        fig.legend(handles, labels, loc="center right", fontsize=7, frameon=False)
+    fig.suptitle(table.spec.title, fontsize=9)
+    fig.subplots_adjust(left=0.7 / fig.get_figwidth(), right=1 - legend_w - 0.01, bottom=0.15, top=0.85,
+                        wspace=0.35)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)

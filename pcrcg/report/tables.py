@@ -187,7 +187,10 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
                         break
             cell.runs = refs
             if not vals:
-                cell.reason = f"metric {' or '.join(col.keys())} not logged by {len(done)} finished run(s)"
+                # (MLflow's table shows a metric that was not logged and a NaN alike)
+                cell.runs = [_ref(rec) for _, rec in done.iterrows()]
+                cell.reason = (f"no value of {' or '.join(col.keys())} in {len(done)} finished run(s) "
+                               f"(not logged, or NaN: e.g. RRE when no pair registered)")
                 continue
             cell.values = vals
             cell.mean = float(np.mean(vals))
@@ -211,6 +214,11 @@ def _values(df: pd.DataFrame, col: str) -> list[str]:
     return sorted(vals, key=lambda s: (len(s), s))
 
 
+# the facts worth a line under each table (pcrcg.evaluation's protocol dict); all are in the CSV/MLflow
+_PROTOCOL_KEYS = ("pairs", "pairs_counted_in_rr", "n_pairs", "n_pairs_rr", "ransac.max_iterations", "ransac.distance",
+                  "sampling", "predator_variant", "seed")
+
+
 def protocol_summary(runs: pd.DataFrame) -> list[str]:
     """Short facts about how ``runs`` were evaluated: pairs per benchmark, RANSAC, seeds, profile."""
     if runs.empty:
@@ -219,8 +227,11 @@ def protocol_summary(runs: pd.DataFrame) -> list[str]:
     benches = sorted({c.split(".")[2] for c in runs.columns
                       if c.startswith("params.protocol.") and c.count(".") >= 3})
     for b in benches:
-        facts = [f"{c.rsplit('.', 1)[-1]} {'/'.join(_values(runs, c))}"
-                 for c in sorted(runs.columns) if c.startswith(f"params.protocol.{b}.") and _values(runs, c)]
+        pre = f"params.protocol.{b}."
+        keys = [k for k in _PROTOCOL_KEYS if _values(runs, pre + k)]
+        if not keys:  # unknown layout: every plain (not nested) fact
+            keys = [c[len(pre):] for c in sorted(runs.columns) if c.startswith(pre) and "." not in c[len(pre):]]
+        facts = [f"{k} {'/'.join(_values(runs, pre + k))}" for k in keys if _values(runs, pre + k)]
         if facts:
             out.append(f"{b}: " + ", ".join(facts))
     ransac = [f"{c.split('ransac_')[-1].split('.')[-1]} {'/'.join(_values(runs, c))}"

@@ -3,7 +3,10 @@
 Public API (other stages code against it)
 -----------------------------------------
 * :class:`MatcherConfig` ``(method="sift"|"orb", ratio=0.8, mutual=True, ransac_threshold=3.0,
-  max_keypoints=4000, min_matches=8, pairs="paper"|"all", image_size=None, seed=0)``.
+  max_keypoints=4000, min_matches=8, pairs="paper"|"all", image_size=None, seed=0,
+  contrast_threshold=0.04)``. ``min_matches`` applies to the candidates before RANSAC and to its
+  inliers; a fundamental matrix fits any 8 matches, so a verification only means something well
+  above 8 (the ``matcher2d`` configs use 12).
   ``ransac_threshold`` is in pixels of the image actually matched (``image_size`` when set).
 * :class:`Matches` ``(uv_a (K, 2) float32, uv_b (K, 2) float32, confidence (K,) float32 in (0, 1])``;
   ``uv = (u, v) = (x, y)`` pixel coordinates of the *input* images (pixel centres at integers),
@@ -52,6 +55,7 @@ class MatcherConfig:
     pairs: str = "paper"
     image_size: tuple[int, int] | None = None  # (H, W) the images are resized to before matching
     seed: int = 0
+    contrast_threshold: float = 0.04  # SIFT detector (OpenCV's default); lower finds more in flat images
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -64,6 +68,8 @@ class MatcherConfig:
             raise ConfigError("matcher2d.max_keypoints", self.max_keypoints, "an integer >= 8")
         if int(self.min_matches) < 1:
             raise ConfigError("matcher2d.min_matches", self.min_matches, "an integer >= 1")
+        if not float(self.contrast_threshold) > 0:
+            raise ConfigError("matcher2d.contrast_threshold", self.contrast_threshold, "a number > 0")
         if self.pairs not in PAIR_MODES:
             raise ConfigError("matcher2d.pairs", self.pairs, " | ".join(PAIR_MODES))
         if self.image_size is not None:
@@ -155,7 +161,7 @@ def _detect(gray: np.ndarray, cfg: MatcherConfig) -> tuple[np.ndarray, np.ndarra
     import cv2
 
     if cfg.method == "sift":
-        det = cv2.SIFT_create(nfeatures=int(cfg.max_keypoints))
+        det = cv2.SIFT_create(nfeatures=int(cfg.max_keypoints), contrastThreshold=float(cfg.contrast_threshold))
     else:
         det = cv2.ORB_create(nfeatures=int(cfg.max_keypoints))
     kps, desc = det.detectAndCompute(gray, None)

@@ -86,7 +86,7 @@ class SimpleBlock(nn.Module):
 
     def forward(self, x: torch.Tensor, pyr: TensorPyramid) -> torch.Tensor:
         q, s, n = _conv_inputs(pyr, self.layer, self.strided)
-        return self.act(self.norm(self.conv(q, s, n, x)))
+        return self.act(self.norm(self.conv(q, s, n, x, pyr.cache)))
 
 
 class ResnetBottleneckBlock(nn.Module):
@@ -111,7 +111,7 @@ class ResnetBottleneckBlock(nn.Module):
     def forward(self, feats: torch.Tensor, pyr: TensorPyramid) -> torch.Tensor:
         q, s, n = _conv_inputs(pyr, self.layer, self.strided)
         x = self.unary1(feats)
-        x = self.act(self.norm_conv(self.conv(q, s, n, x)))
+        x = self.act(self.norm_conv(self.conv(q, s, n, x, pyr.cache)))
         x = self.unary2(x)
         short = max_pool(feats, n) if self.strided else feats
         return self.act(x + self.shortcut(short))

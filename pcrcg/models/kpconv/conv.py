@@ -18,6 +18,19 @@ from torch import nn
 from pcrcg.models.kpconv.kernel_points import kernel_points as make_kernel_points
 
 
+def kernel_influence(q_pts: torch.Tensor, s_pts: torch.Tensor, neighbors: torch.Tensor, kernel: torch.Tensor,
+                     extent: float) -> torch.Tensor:
+    """Linear influence ``max(0, 1 - |p_j - q - x_k| / extent)``: -> (M, H, K) (no gradient needed:
+    positions are inputs). Shadow neighbours get arbitrary values; their features are zero."""
+    # The shadow row sits at the origin: its feature is zero, so its position never matters (no huge
+    # sentinel values, which would overflow half precision).
+    s_pad = torch.cat([s_pts, s_pts.new_zeros((1, 3))], 0)
+    rel = s_pad[neighbors] - q_pts.unsqueeze(1)  # (M, H, 3)
+    # |r - x|^2 = |r|^2 - 2 r.x + |x|^2, without materialising (M, H, K, 3)
+    sq = (rel * rel).sum(-1, keepdim=True) - 2.0 * rel @ kernel.t() + (kernel * kernel).sum(-1)
+    return torch.clamp(1.0 - torch.sqrt(torch.clamp(sq, min=0.0)) / extent, min=0.0)
+
+
 def kpconv(
     q_pts: torch.Tensor,
     s_pts: torch.Tensor,
@@ -27,24 +40,20 @@ def kpconv(
     weights: torch.Tensor,
     extent: float,
     normalize: bool = True,
+    influence: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Functional rigid KPConv with linear influence and sum aggregation.
 
     q_pts (M, 3), s_pts (N, 3), neighbors (M, H) long with shadow index N, feats (N, C),
-    kernel (K, 3) relative to the query, weights (K, C, O) -> (M, O).
+    kernel (K, 3) relative to the query, weights (K, C, O) -> (M, O). ``influence`` (M, H, K):
+    precomputed :func:`kernel_influence` (shared by the convolutions of a level).
     """
     n_sup = s_pts.shape[0]
-    # The shadow row has a zero feature, so its position never matters (no huge sentinel values:
-    # they would overflow half precision).
-    s_pad = torch.cat([s_pts, s_pts.new_zeros((1, 3))], 0)
+    if influence is None:
+        influence = kernel_influence(q_pts, s_pts, neighbors, kernel, extent)
     f_pad = torch.cat([feats, feats.new_zeros((1, feats.shape[1]))], 0)
-    rel = s_pad[neighbors] - q_pts.unsqueeze(1)  # (M, H, 3)
-    # |r - x|^2 = |r|^2 - 2 r.x + |x|^2, without materialising (M, H, K, 3)
-    sq = (rel * rel).sum(-1, keepdim=True) - 2.0 * rel @ kernel.t() + (kernel * kernel).sum(-1)
-    dist = torch.sqrt(torch.clamp(sq, min=0.0))  # (M, H, K)
-    influence = torch.clamp(1.0 - dist / extent, min=0.0)
     neigh_f = f_pad[neighbors]  # (M, H, C)
-    weighted = torch.matmul(influence.transpose(1, 2), neigh_f)  # (M, K, C)
+    weighted = torch.matmul(influence.transpose(1, 2).to(neigh_f.dtype), neigh_f)  # (M, K, C)
     k, c, o = weights.shape
     out = weighted.reshape(-1, k * c) @ weights.reshape(k * c, o)
     if normalize:
@@ -65,15 +74,35 @@ class KPConv(nn.Module):
         super().__init__()
         self.in_channels, self.out_channels = in_channels, out_channels
         self.radius, self.extent, self.normalize = float(radius), float(extent), normalize
-        self.register_buffer("kernel", torch.from_numpy(make_kernel_points(n_kernel_points, radius, kernel_seed)))
+        kp = make_kernel_points(n_kernel_points, radius, kernel_seed)
+        self.register_buffer("kernel", torch.from_numpy(kp))
+        self._kernel_sig = kp.tobytes()  # identifies the disposition for the influence cache
         self.weights = nn.Parameter(torch.empty(n_kernel_points, in_channels, out_channels))
         bound = 1.0 / math.sqrt(in_channels * n_kernel_points)
         nn.init.uniform_(self.weights, -bound * math.sqrt(3.0), bound * math.sqrt(3.0))
 
     def forward(self, q_pts: torch.Tensor, s_pts: torch.Tensor, neighbors: torch.Tensor,
-                feats: torch.Tensor) -> torch.Tensor:
-        """q_pts (M, 3), s_pts (N, 3), neighbors (M, H), feats (N, C) -> (M, O)."""
-        return kpconv(q_pts, s_pts, neighbors, feats, self.kernel, self.weights, self.extent, self.normalize)
+                feats: torch.Tensor, cache: dict | None = None) -> torch.Tensor:
+        """q_pts (M, 3), s_pts (N, 3), neighbors (M, H), feats (N, C) -> (M, O).
+
+        ``cache``: a dict living as long as the inputs (one batch); convolutions with the same
+        neighbours, kernel and extent then share one influence tensor.
+        """
+        infl = None
+        if cache is not None:
+            key = (id(neighbors), id(q_pts), self._kernel_sig, round(self.extent, 9))
+            infl = cache.get(key)
+            if infl is None:
+                with torch.no_grad():
+                    infl = kernel_influence(q_pts, s_pts, neighbors, self.kernel, self.extent)
+                cache[key] = infl
+        return kpconv(q_pts, s_pts, neighbors, feats, self.kernel, self.weights, self.extent, self.normalize, infl)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        k = state_dict.get(prefix + "kernel")
+        if k is not None:
+            self._kernel_sig = k.detach().to("cpu", torch.float32).numpy().tobytes()
 
     def extra_repr(self) -> str:
         return (f"in={self.in_channels}, out={self.out_channels}, radius={self.radius:.4f}, "

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Hashable, Iterable, Sequence
 
@@ -126,18 +126,20 @@ def calibrate_limits(clouds: Iterable[np.ndarray], spec: PyramidSpec, keep_ratio
 
 @dataclass
 class TensorPyramid:
-    """Torch pyramid of a stacked pair (source first); ``lengths`` (L, 2) = source/target counts."""
+    """Torch pyramid of a stacked pair (source first); ``lengths`` (L, 2) = source/target counts (CPU)."""
 
     points: list[torch.Tensor]
     neighbors: list[torch.Tensor]
     pools: list[torch.Tensor]
     upsamples: list[torch.Tensor]
     lengths: torch.Tensor
+    # per-batch scratch space (KPConv influences shared by the convolutions of a level)
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def to(self, device: torch.device | str) -> "TensorPyramid":
         mv = lambda xs: [x.to(device, non_blocking=True) for x in xs]  # noqa: E731
-        return TensorPyramid(mv(self.points), mv(self.neighbors), mv(self.pools), mv(self.upsamples),
-                             self.lengths.to(device))
+        # lengths stay on the CPU: they are read as Python ints (no device sync)
+        return TensorPyramid(mv(self.points), mv(self.neighbors), mv(self.pools), mv(self.upsamples), self.lengths)
 
     def split(self, layer: int) -> tuple[int, int]:
         """Number of source and target points at ``layer`` (Python ints)."""

@@ -1,0 +1,218 @@
+"""Speed and memory of the 3D network stage (prints figures; asserts nothing).
+
+``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [pairs=4] [reps=3] [device=cpu]
+[threads=2] [root=null] [color=none|rgb|deep]``
+
+Per profile (model sizes from ``conf/profile/<p>.yaml`` + ``conf/model/predator.yaml``), on the
+generated data set ``data/synthmatch-<p>`` when it exists (else a synthetic box-room pair sized for
+the profile's voxel, said so in the output):
+
+* data pipeline, seconds per pair: the collate step (grid subsampling, radius neighbours of every
+  level, correspondences, augmentation) with an empty neighbour cache (``cold``) and with the
+  fragments' pyramids cached (``warm``, what training sees from the second epoch on);
+* training, seconds per pair: forward + losses + backward + SGD step;
+* inference, seconds per pair: forward without gradients and the per-fragment outputs;
+* peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU).
+
+Each profile runs in its own process so that the peak memory is its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+REPO = CONF.parent
+
+
+def _time(fn: Callable[[], Any], reps: int) -> float:
+    fn()
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
+def profile_config(profile: str) -> dict[str, Any]:
+    """The resolved ``model`` and ``trainer`` nodes of a profile (no Hydra needed)."""
+    from omegaconf import OmegaConf
+
+    root = OmegaConf.create({
+        "profile": OmegaConf.load(CONF / "profile" / f"{profile}.yaml"),
+        "model": OmegaConf.load(CONF / "model" / "predator.yaml"),
+        "trainer": OmegaConf.load(CONF / "trainer" / "default.yaml"),
+    })
+    return OmegaConf.to_container(root, resolve=True)  # type: ignore[return-value]
+
+
+def _samples(root: Path | None, voxel: float, n: int, n_views: int) -> tuple[list, str]:
+    if root is not None and (root / "pairs" / "train.txt").is_file():
+        from pcrcg.data.dataset import PairDataset
+
+        ds = PairDataset(root, "train", n_views)
+        step = max(1, len(ds) // n)
+        return [ds[k] for k in range(0, min(len(ds), step * n), step)][:n], f"{root} (train pairs)"
+    from pcrcg.models.toy import toy_pair
+
+    density = 2.0 / voxel**2
+    return ([toy_pair(k, size=(4.0, 3.5, 2.6), density=density) for k in range(n)],
+            f"synthetic box-room pairs ({root} not found)")
+
+
+def _lifting(color: str) -> dict | None:
+    if color == "none":
+        return None
+    feats = {"name": color, "dim": 3 if color == "rgb" else 32}
+    out = {"projection": {"name": "implicit", "views": 2}, "features": feats}
+    if color == "deep":
+        out["encoder2d"] = {"name": "scratch", "arch": "resnet18", "out_dim": 32, "weights": None}
+    return out
+
+
+def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
+                  color: str = "none") -> dict[str, Any]:
+    import torch
+
+    from pcrcg.models.datamodule import AugmentConfig, PairCollate
+    from pcrcg.models.kpconv import PyramidCache, PyramidSpec, calibrate_limits
+    from pcrcg.models.module import PCRCGModule
+
+    cfg = profile_config(profile)
+    m, t = cfg["model"], cfg["trainer"]
+    data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
+    lifting = _lifting(color)
+    samples, source = _samples(data_root, m["voxel_size"], pairs, 2 if lifting else 0)
+    spec0 = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], (), m["max_points"])
+    clouds = [c for s in samples for c in (s.src_points, s.tgt_points)]
+    limits = calibrate_limits(clouds, spec0, m["neighbor_keep_ratio"])
+    spec = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], limits, m["max_points"])
+    r_ov = m["loss"]["overlap_radius"] * m["voxel_size"]
+    aug = AugmentConfig.from_mapping(t.get("augment"))
+
+    cold = []
+    for s in samples:
+        col = PairCollate(spec, r_ov, aug, PyramidCache(0))
+        t0 = time.perf_counter()
+        col([s])
+        cold.append(time.perf_counter() - t0)
+    cache = PyramidCache(64)
+    warm_col = PairCollate(spec, r_ov, aug, cache)
+    for s in samples:
+        warm_col([s])
+    warm = []
+    for s in samples:
+        t0 = time.perf_counter()
+        warm_col([s])
+        warm.append(time.perf_counter() - t0)
+
+    torch.manual_seed(0)
+    model_cfg = {**m, "neighbor_limits": list(limits)}
+    module = PCRCGModule(model_cfg, optim=t.get("optim"), lifting=lifting).to(device)
+    n_params = sum(p.numel() for p in module.net.parameters())
+    opt = module.configure_optimizers()["optimizer"]
+    batches = [warm_col([s]).to(device) for s in samples]
+    sync = (lambda: torch.cuda.synchronize()) if device.startswith("cuda") else (lambda: None)
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+
+    it = iter(range(10**9))
+
+    def train_step():
+        b = batches[next(it) % len(batches)]
+        loss = module.training_step(b, 0)
+        if loss is not None:
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        sync()
+
+    def infer_step():
+        b = batches[next(it) % len(batches)]
+        module.predict_pair(b)
+        sync()
+
+    module.train()
+    s_train = _time(train_step, reps * len(batches))
+    module.eval()
+    s_infer = _time(infer_step, reps * len(batches))
+    n0 = [int(b.pyramid.lengths[0].sum()) for b in batches]
+    peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
+            else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    return {
+        "profile": profile, "device": device, "data": source, "color": color, "pairs": len(samples),
+        "voxel": m["voxel_size"], "levels": m["num_layers"], "first_dim": m["first_dim"], "params": n_params,
+        "in_dim": module.in_dim, "level0_points_per_pair": float(np.mean(n0)), "neighbor_limits": list(limits),
+        "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
+        "train_s_per_pair": s_train, "infer_s_per_pair": s_infer,
+        "peak_mem_mb": peak, "peak_mem_kind": "cuda allocated" if device.startswith("cuda") else "process RSS",
+        "torch_threads": torch.get_num_threads(),
+    }
+
+
+def _parse(argv: list[str]) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    args = {"profiles": ["tiny", "cpu"], "pairs": 4, "reps": 3, "device": "cpu", "threads": 2, "root": None,
+            "color": "none", "child": False}
+    for a in argv:
+        k, _, v = a.partition("=")
+        if k not in args:
+            raise SystemExit(f"unknown argument {k!r}; known: {sorted(args)}")
+        val = OmegaConf.to_container(OmegaConf.create(f"v: {v}"))["v"] if v else v  # type: ignore[index]
+        args[k] = val
+    if isinstance(args["profiles"], str):
+        args["profiles"] = [args["profiles"]]
+    return args
+
+
+def _print(row: dict[str, Any]) -> None:
+    print(f"\n[{row['profile']}] {row['device']}, {row['data']}, color={row['color']}")
+    print(f"  model: voxel {row['voxel']} m, {row['levels']} levels, first_dim {row['first_dim']}, "
+          f"{row['params'] / 1e6:.2f} M params, in_dim {row['in_dim']}; "
+          f"{row['level0_points_per_pair']:.0f} level-0 points per pair; limits {row['neighbor_limits']}")
+    print(f"  data pipeline  {row['data_s_per_pair_cold']:.3f} s/pair cold, {row['data_s_per_pair_warm']:.3f} s/pair warm")
+    print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + SGD)")
+    print(f"  inference      {row['infer_s_per_pair']:.3f} s/pair")
+    print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    args = _parse(list(sys.argv[1:] if argv is None else argv))
+    import torch
+
+    torch.set_num_threads(int(args["threads"]))
+    if args["child"]:
+        row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
+                            args["root"], str(args["color"]))
+        print("@@" + json.dumps(row))
+        return [row]
+    rows = []
+    for p in args["profiles"]:
+        cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", "child=true"]
+        cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color")]
+        if args["root"]:
+            cmd.append(f"root={args['root']}")
+        res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+        line = next((x for x in res.stdout.splitlines() if x.startswith("@@")), None)
+        if line is None:
+            print(f"[{p}] failed:\n{res.stderr[-3000:]}")
+            continue
+        row = json.loads(line[2:])
+        _print(row)
+        rows.append(row)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

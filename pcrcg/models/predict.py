@@ -1,0 +1,27 @@
+"""The hook the evaluation stage looks for: per-pair network outputs on a test benchmark.
+
+:func:`predict_benchmark` ``(cfg, data_root, checkpoint, benchmark, device="cpu", max_pairs=None)
+-> Iterator[PairOutput]``: each :class:`~pcrcg.models.module.PairOutput` has ``scene, i, j``,
+``src`` / ``tgt`` (:class:`~pcrcg.models.module.FragmentOutput`: ``points (N, 3)``,
+``descriptors (N, D)``, ``overlap (N,)``, ``matchability (N,)``, NumPy, each fragment in its own
+frame), the data set's ``transform`` (src -> tgt) and ``color_coverage`` (nan without color).
+
+Everything the model needs (sizes, neighbour limits, the projection settings) comes from the
+checkpoint; ``cfg`` is accepted for the interface and not needed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Iterator
+
+from pcrcg.models.module import PairOutput
+from pcrcg.models.train import infer, load_module
+
+
+def predict_benchmark(cfg: Any, data_root: str | Path, checkpoint: str | Path, benchmark: str,
+                      device: str | None = "cpu", max_pairs: int | None = None,
+                      progress: bool = True) -> Iterator[PairOutput]:
+    """Outputs of every pair of ``benchmark`` (``3DMatch`` / ``3DLoMatch``) of the data at ``data_root``."""
+    module = load_module(checkpoint, device=None if device in (None, "auto") else device)
+    yield from infer(module, data_root, benchmark, max_pairs=max_pairs, progress=progress)

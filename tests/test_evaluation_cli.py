@@ -1,0 +1,222 @@
+"""`python -m pcrcg.evaluate` modes, the pipeline's evaluation stage and evaluate_model_outputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pcrcg.data.layout import Layout, PairRecord, write_gt_log, write_matrix, write_ply
+from pcrcg.errors import ConfigError, DataError
+from pcrcg.evaluation import evaluate_model_outputs, information_matrix, load_benchmark, read_estimates
+from pcrcg.evaluation.metrics import SceneGT, rotation_error_deg
+from pcrcg.geometry import axis_angle_to_matrix, make_transform
+from pcrcg.registration import RansacConfig, RegistrationConfig
+from pcrcg.registration.synthetic import box_room, make_fragment_pair, simulate_outputs, write_layout
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _compose(overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=["profile=tiny", *overrides])
+
+
+def _run(overrides: list[str]) -> dict:
+    from pcrcg.evaluate import run
+
+    out = run(_compose(overrides))
+    json.dumps(out)  # JSON-ready
+    return out
+
+
+@pytest.fixture(scope="module")
+def layout(tmp_path_factory) -> Path:
+    return write_layout(tmp_path_factory.mktemp("lay") / "data", seed=0)
+
+
+def _gt_as_estimates(root: Path, out: Path, perturb=None) -> Path:
+    for b in ("3DMatch", "3DLoMatch"):
+        for s, g in load_benchmark(Layout(root).benchmark_dir(b)).items():
+            recs = [PairRecord(s, p.i, p.j, p.transform if perturb is None else p.transform @ perturb, n_fragments=p.n_fragments)
+                    for p in g.pairs]
+            write_gt_log(out / b / s / "est.log", recs)
+    return out
+
+
+# --------------------------------------------------------------------------- mode=score
+
+
+def test_score_mode_subprocess_prints_json_last(layout, tmp_path):
+    est = _gt_as_estimates(layout, tmp_path / "est")
+    bench = Layout(layout).benchmark_dir("3DMatch")
+    proc = subprocess.run(
+        [sys.executable, "-m", "pcrcg.evaluate", "mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DMatch'}",
+         f"hydra.run.dir={tmp_path / 'hydra'}"],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["rr"] == 100.0 and out["scenes"] == {"room": 100.0} and out["n_counted"] == 3
+    # a bad input: exit status 2 and one line naming the file
+    proc = subprocess.run(
+        [sys.executable, "-m", "pcrcg.evaluate", "mode=score", f"benchmark_dir={tmp_path / 'missing'}",
+         f"estimate_dir={est}", f"hydra.run.dir={tmp_path / 'hydra'}"],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 2 and f"{tmp_path / 'missing'}: benchmark folder does not exist" in proc.stderr
+
+
+def test_score_mode_counts_failures_and_missing(layout, tmp_path):
+    est = _gt_as_estimates(layout, tmp_path / "est", perturb=make_transform(np.eye(3), [0.5, 0, 0]))
+    bench = Layout(layout).benchmark_dir("3DMatch")
+    out = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DMatch'}"])
+    assert out["rr"] == 0.0 and out["n_success"] == 0
+    (est / "3DMatch" / "room" / "est.log").unlink()
+    out = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DMatch'}"])
+    assert out["rr"] == 0.0 and out["missing_scenes"] == ["room"] and out["n_missing"] == 7
+
+
+def test_score_mode_bad_inputs_name_the_file(layout, tmp_path):
+    bench = Layout(layout).benchmark_dir("3DMatch")
+    with pytest.raises(ConfigError, match="estimate_dir"):
+        _run(["mode=score", f"benchmark_dir={bench}"])
+    with pytest.raises(DataError, match="does-not-exist"):
+        _run(["mode=score", f"benchmark_dir={tmp_path / 'does-not-exist'}", f"estimate_dir={tmp_path}"])
+    est = _gt_as_estimates(layout, tmp_path / "est")
+    f = est / "3DMatch" / "room" / "est.log"
+    f.write_text(f.read_text().replace("1.0000000000e+00", "1.0000000000e+00 7", 1))  # 5 numbers on a row
+    with pytest.raises(DataError, match=str(f)):
+        _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DMatch'}"])
+    # a benchmark scene without gt.info
+    import shutil
+
+    b2 = tmp_path / "bench2"
+    shutil.copytree(bench, b2)
+    (b2 / "room" / "gt.info").unlink()
+    with pytest.raises(DataError, match=r"gt\.info"):
+        _run(["mode=score", f"benchmark_dir={b2}", f"estimate_dir={est / '3DMatch'}"])
+    with pytest.raises(ConfigError, match="mode"):
+        _run(["mode=nope"])
+
+
+# --------------------------------------------------------------------------- mode=pair
+
+
+@pytest.fixture(scope="module")
+def clouds(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pair")
+    rng = np.random.default_rng(4)
+    pts, cols = box_room(rng, 30000)
+    pair = make_fragment_pair(rng, pts, cols, crop=0.2, voxel=0.04)
+    write_ply(d / "src.ply", pair.src_points, pair.src_colors)
+    np.savez(d / "tgt.npz", points=pair.tgt_points, colors=pair.tgt_colors)
+    write_ply(d / "tgt.ply", pair.tgt_points, pair.tgt_colors)
+    init = pair.transform @ make_transform(axis_angle_to_matrix([0, 0, 1], np.radians(3)), [0.03, 0.0, -0.02])
+    write_matrix(d / "init.txt", init)
+    return d, pair
+
+
+def test_pair_mode_icp_from_an_initial_estimate(clouds):
+    d, pair = clouds
+    out = _run(["mode=pair", "method=icp", f"source={d / 'src.ply'}", f"target={d / 'tgt.npz'}", f"init={d / 'init.txt'}"])
+    T = np.array(out["transform"])
+    assert T.shape == (4, 4)
+    assert rotation_error_deg(T[:3, :3], pair.transform[:3, :3]) < 1.0
+    assert np.linalg.norm(T[:3, 3] - pair.transform[:3, 3]) < 0.02
+
+
+def test_pair_mode_color_icp_and_errors(clouds, tmp_path):
+    d, pair = clouds
+    out = _run(["mode=pair", "method=color_icp", f"source={d / 'src.ply'}", f"target={d / 'tgt.ply'}",
+                f"init={d / 'init.txt'}"])
+    assert np.linalg.norm(np.array(out["transform"])[:3, 3] - pair.transform[:3, 3]) < 0.02
+    np.savez(tmp_path / "nocol.npz", points=pair.tgt_points)
+    with pytest.raises(DataError, match="nocol.npz"):
+        _run(["mode=pair", "method=color_icp", f"source={d / 'src.ply'}", f"target={tmp_path / 'nocol.npz'}"])
+    with pytest.raises(DataError, match="missing.ply"):
+        _run(["mode=pair", "method=icp", f"source={d / 'missing.ply'}", f"target={d / 'tgt.ply'}"])
+    (tmp_path / "bad.txt").write_text("1 0 0\n0 1 0\n0 0 1\n")
+    with pytest.raises(DataError, match="bad.txt"):
+        _run(["mode=pair", "method=icp", f"source={d / 'src.ply'}", f"target={d / 'tgt.ply'}", f"init={tmp_path / 'bad.txt'}"])
+    with pytest.raises(ConfigError, match="method"):
+        _run(["mode=pair", "method=magic", f"source={d / 'src.ply'}", f"target={d / 'tgt.ply'}"])
+
+
+# --------------------------------------------------------------------------- mode=benchmark
+
+
+def test_benchmark_mode_icp_from_given_estimates(layout, tmp_path):
+    init = _gt_as_estimates(layout, tmp_path / "init",
+                            perturb=make_transform(axis_angle_to_matrix([1, 0, 0], np.radians(2)), [0.02, 0, 0]))
+    out = _run(["mode=benchmark", "method=icp", f"++data.root={layout}", f"out_dir={tmp_path / 'out'}",
+                f"init_dir={init}"])
+    assert out["benchmarks"]["3DMatch"]["rr"] == 100.0 and out["benchmarks"]["3DLoMatch"]["rr"] == 100.0
+    assert out["benchmarks"]["3DMatch"]["rte"] < 0.02
+    est = read_estimates(tmp_path / "out" / "3DMatch" / "room" / "est.log")
+    assert len(est) == 7
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["benchmarks"]["3DMatch"]["protocol"]["pairs_counted_in_rr"] == 3
+    with pytest.raises(DataError, match="nowhere"):
+        _run(["mode=benchmark", "method=icp", f"++data.root={tmp_path / 'nowhere'}", f"out_dir={tmp_path / 'o2'}"])
+
+
+def test_pipeline_evaluate_stage_with_a_classical_method(layout, tmp_path):
+    from pcrcg.evaluation.run import evaluate
+
+    cfg = OmegaConf.create({"method": "fpfh", "seed": 0, "views": 2, "icp_init": "identity",
+                            "eval": {"benchmarks": ["3DMatch"], "n_points": [1000], "ransac_iterations": 5000,
+                                     "ransac_distance": 0.05, "inlier_distance": 0.1, "fmr_threshold": 0.05,
+                                     "rmse_threshold": 0.2, "max_pairs": 3}})
+    res = evaluate(cfg, data_root=layout, out_dir=tmp_path / "eval", progress=False)
+    m = res["metrics"]
+    assert {"3DMatch/rr", "3DMatch/rre", "3DMatch/rte", "3DMatch/fmr", "3DMatch/ir"} <= set(m)
+    assert 0.0 <= m["3DMatch/rr"] <= 100.0
+    assert res["protocol"]["3DMatch"]["ransac"]["max_iterations"] == 5000
+    assert (tmp_path / "eval" / "metrics.json").is_file()
+    assert all(Path(p).exists() for p, _ in res["artifacts"])
+
+
+# --------------------------------------------------------------------------- evaluate_model_outputs
+
+
+def test_evaluate_model_outputs_on_simulated_network_outputs(tmp_path):
+    rng = np.random.default_rng(0)
+    pts, cols = box_room(rng, 40000)
+    pairs, outputs = [], []
+    for k, (i, j) in enumerate([(0, 2), (0, 3), (1, 2), (1, 4)]):
+        fp = make_fragment_pair(rng, pts, cols, crop=0.25, voxel=0.04)
+        fourier = (rng.normal(scale=1 / 0.06, size=(32, 3)), rng.uniform(0, 6.28, 32))
+        noise = 0.3 if k < 3 else 5.0  # the last pair's descriptors are useless
+        src = simulate_outputs(rng, fp.src_world, fp.src_overlap, noise, fourier=fourier)
+        tgt = simulate_outputs(rng, fp.tgt_world, np.ones(len(fp.tgt_world), bool), noise, fourier=fourier)
+        pairs.append((PairRecord("room", i, j, fp.transform, n_fragments=5), information_matrix(fp.src_points[fp.src_overlap])))
+        outputs.append(SimpleNamespace(scene="room", i=i, j=j, color_coverage=0.5,
+                                       src=SimpleNamespace(points=fp.src_points, descriptors=src[0], overlap=src[1], matchability=src[2]),
+                                       tgt=SimpleNamespace(points=fp.tgt_points, descriptors=tgt[0], overlap=tgt[1], matchability=tgt[2])))
+    gt = {"room": SceneGT("room", tuple(p for p, _ in pairs), np.stack([p.transform for p, _ in pairs]),
+                          np.stack([m for _, m in pairs]))}
+    cfg = RegistrationConfig(n_points=(1000, 250), ransac=RansacConfig(max_iterations=10000))
+    m = evaluate_model_outputs(outputs, gt, cfg=cfg, est_dir=tmp_path / "est", seed=0, progress=False)
+    # (1, 2) is adjacent: 3 counted pairs, the last one fails
+    assert m["rr_1000"] == pytest.approx(200 / 3) and m["rr_250"] == pytest.approx(200 / 3)
+    assert m["ir_1000"] > 20.0 and m["fmr_1000"] == 75.0
+    assert m["rre"] == m["rre_1000"] < 5.0 and m["rte"] < 0.2
+    assert m["color_coverage"] == 0.5 and m["n_counted"] == 3
+    for n in (1000, 250):
+        assert len(read_estimates(tmp_path / "est" / str(n) / "room" / "est.log")) == 4
+    # a pair without output counts as a failure; only_evaluated scores the given ones only
+    m2 = evaluate_model_outputs(outputs[:1], gt, cfg=cfg, progress=False)
+    assert m2["rr_1000"] == pytest.approx(100 / 3)
+    m3 = evaluate_model_outputs(outputs[:1], gt, cfg=cfg, only_evaluated=True, progress=False)
+    assert m3["rr_1000"] == 100.0 and m3["n_counted"] == 1
+    with pytest.raises(KeyError, match="not in the benchmark"):
+        evaluate_model_outputs([SimpleNamespace(scene="room", i=7, j=9, src=None, tgt=None)], gt, cfg=cfg, progress=False)
