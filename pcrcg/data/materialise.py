@@ -44,7 +44,7 @@ from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
 from pcrcg.errors import ConfigError, DataError
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 SOURCES = ("synthmatch", "redkitchen", "threedmatch")
 
 

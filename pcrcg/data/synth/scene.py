@@ -111,7 +111,7 @@ def make_room(rng: np.random.Generator) -> Room:
             if not _overlaps(lo, hi, boxes):
                 boxes.append((lo, hi))
                 room.panels += _box_panels(lo, hi, random_texture(rng, "furniture"), "furniture")
-                if rng.random() < 0.5:  # a poster on the unit's front
+                if rng.random() < 0.7:  # a poster on the unit's front
                     _add_front_poster(room, rng, lo, hi, wall)
                 break
 
@@ -151,9 +151,9 @@ def make_room(rng: np.random.Generator) -> Room:
             break
 
     # posters on the walls, rugs on the floor: flat, 3 mm off the surface
-    for _ in range(int(rng.integers(3, 8))):
+    for _ in range(int(rng.integers(5, 11))):
         wall = int(rng.integers(0, 4))
-        w, h = rng.uniform(0.4, 1.6), rng.uniform(0.4, 1.2)
+        w, h = rng.uniform(0.5, 1.8), rng.uniform(0.4, 1.3)
         z0 = rng.uniform(0.4, max(0.5, H - h - 0.2))
         eps = 0.003
         tex = random_texture(rng, "poster")
@@ -169,7 +169,7 @@ def make_room(rng: np.random.Generator) -> Room:
         else:
             y0 = rng.uniform(0.1, D - w - 0.1)
             room.panels.append(Panel(np.array([W - eps, y0, z0]), Z * h, Y * w, tex, "poster"))
-    for _ in range(int(rng.integers(1, 4))):
+    for _ in range(int(rng.integers(2, 5))):
         w, d = rng.uniform(0.8, 2.5), rng.uniform(0.6, 2.0)
         x0, y0 = rng.uniform(0.2, W - w - 0.2), rng.uniform(0.2, D - d - 0.2)
         room.panels.append(Panel(np.array([x0, y0, 0.003]), X * w, Y * d, random_texture(rng, "rug"), "rug"))

@@ -121,16 +121,16 @@ def random_texture(rng: np.random.Generator, kind: str) -> Texture:
     """A texture typical of a surface kind: ``wall``, ``floor``, ``ceiling``, ``furniture``, ``poster``, ``rug``."""
     seed = int(rng.integers(0, 2**31 - 1))
     angle = float(rng.uniform(0, np.pi))
-    if kind in ("wall", "ceiling"):
-        fam = rng.choice(["plain", "noise", "gradient"], p=[0.5, 0.3, 0.2])
-        return Texture(str(fam), random_palette(rng, 0.12), float(rng.uniform(0.5, 2.0)), angle, seed, 0.03)
+    if kind in ("wall", "ceiling"):  # mostly low-contrast, rarely perfectly plain (like plaster and paint)
+        fam = rng.choice(["plain", "noise", "gradient"], p=[0.15, 0.6, 0.25])
+        return Texture(str(fam), random_palette(rng, 0.28), float(rng.uniform(0.15, 0.8)), angle, seed, 0.06)
     if kind == "floor":
         fam = rng.choice(["stripes", "checks", "noise"], p=[0.4, 0.3, 0.3])
-        return Texture(str(fam), random_palette(rng, 0.3), float(rng.uniform(0.12, 0.5)), angle, seed, 0.06,
+        return Texture(str(fam), random_palette(rng, 0.45), float(rng.uniform(0.1, 0.4)), angle, seed, 0.08,
                        {"duty": float(rng.uniform(0.3, 0.7))})
     if kind == "furniture":
-        fam = rng.choice(["plain", "noise", "stripes"], p=[0.4, 0.4, 0.2])
-        return Texture(str(fam), random_palette(rng, 0.35), float(rng.uniform(0.05, 0.3)), angle, seed, 0.05)
+        fam = rng.choice(["plain", "noise", "stripes", "checks"], p=[0.15, 0.5, 0.2, 0.15])
+        return Texture(str(fam), random_palette(rng, 0.45), float(rng.uniform(0.04, 0.25)), angle, seed, 0.08)
     if kind in ("poster", "rug"):
         fam = rng.choice(["noise", "stripes", "checks", "shapes", "gradient"])
         scale = float(rng.uniform(0.04, 0.2))
