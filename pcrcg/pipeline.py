@@ -347,7 +347,7 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         timings["time/total_s"] = time.perf_counter() - t0
         if tracker is not None and run_id is not None:
             tracker.log_metrics(run_id, {**metrics, **timings})
-            tracker.log_params(run_id, {f"protocol.{k}": v for k, v in _flat(result.protocol).items()})
+            tracker.log_params(run_id, flatten(result.protocol, "protocol."))
             for path, folder in result.artifacts:
                 tracker.log_artifact(run_id, path, folder)
             for f in ("metrics.json", "plots"):
@@ -373,6 +373,12 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         return outcome
     write_status(job.output_dir, outcome)
     _print_where(cfg, outcome)
+    if not job.multirun and outcome.tracking_uri and OmegaConf.select(cfg, "runtime.report_on_end", default=False):
+        from pcrcg.report import write_experiment_tables
+
+        write_experiment_tables(str(cfg.experiment_name), outcome.tracking_uri,
+                                OmegaConf.select(cfg, "profile.name"),
+                                str(OmegaConf.select(cfg, "runtime.report_dir", default="reports")), job.base_dir, "[run]")
     return outcome
 
 
@@ -429,16 +435,6 @@ def _log_training(ctx: RunContext, trained: TrainOutput) -> None:
         ctx.tracker.log_artifact(ctx.run_id, trained.checkpoint, "checkpoint")
     for path, folder in trained.artifacts:
         ctx.tracker.log_artifact(ctx.run_id, path, folder)
-
-
-def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, Mapping):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
 
 
 def _write_outputs(ctx: RunContext, metrics: Mapping[str, float], result: EvalOutput, h: str) -> None:

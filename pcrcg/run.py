@@ -52,9 +52,7 @@ def _hydra_main(cfg: DictConfig) -> str:
 def cli_search_dirs(argv: Sequence[str]) -> list[Path]:
     """Config folders named by ``--config-path/-cp`` (replaces conf/) and ``--config-dir/-cd``."""
     dirs = [CONF_DIR]
-    it = iter(range(len(argv)))
-    for i in it:
-        arg = argv[i]
+    for i, arg in enumerate(argv):
         for flag in ("--config-path", "-cp", "--config-dir", "-cd"):
             value = None
             if arg == flag and i + 1 < len(argv):

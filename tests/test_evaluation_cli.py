@@ -23,11 +23,11 @@ from pcrcg.registration.synthetic import box_room, make_fragment_pair, simulate_
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _compose(overrides: list[str]):
+def _compose(overrides: list[str], profile: str = "tiny"):
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose(config_name="evaluate", overrides=["profile=tiny", *overrides])
+        return compose(config_name="evaluate", overrides=[f"profile={profile}", *overrides])
 
 
 def _run(overrides: list[str]) -> dict:
@@ -220,3 +220,84 @@ def test_evaluate_model_outputs_on_simulated_network_outputs(tmp_path):
     assert m3["rr_1000"] == 100.0 and m3["n_counted"] == 1
     with pytest.raises(KeyError, match="not in the benchmark"):
         evaluate_model_outputs([SimpleNamespace(scene="room", i=7, j=9, src=None, tgt=None)], gt, cfg=cfg, progress=False)
+
+
+def test_registration_settings_follow_the_profile_and_run_eval_overrides():
+    from pcrcg.evaluation.run import configs_from
+
+    rcfg, bcfg = configs_from(_compose([]))
+    assert rcfg.ransac.max_iterations == 10000 and rcfg.n_points == (1000, 250)
+    rcfg, bcfg = configs_from(_compose([], profile="paper"))
+    assert rcfg.ransac.max_iterations == 50000 and rcfg.n_points == (5000, 2500, 1000, 500, 250)
+    assert rcfg.ransac.distance == 0.05 and rcfg.ransac.edge_length == 0.9 and rcfg.ransac.ransac_n == 3
+    assert bcfg.ransac.max_iterations == 50000 and bcfg.fpfh.voxel == 0.05
+    # the run config's eval node wins (conf/run.yaml)
+    run_like = OmegaConf.create({"eval": {"n_points": [500], "ransac_iterations": 123, "ransac_distance": 0.04}})
+    rcfg, _ = configs_from(run_like)
+    assert rcfg.n_points == (500,) and rcfg.ransac.max_iterations == 123 and rcfg.ransac.distance == 0.04
+    with pytest.raises(ConfigError, match="sampling"):
+        configs_from(OmegaConf.create({"registration": {"sampling": "best"}}))
+
+
+def _fake_predictions(root: Path, noise: float = 0.3):
+    """A stand-in for pcrcg.models.predict.predict_benchmark: simulated outputs on the layout's
+    fragments (descriptors of positions in fragment 0's frame, chained through adjacent pairs)."""
+    from pcrcg.data.layout import read_cloud
+    from pcrcg.geometry import transform_points
+
+    lay = Layout(root)
+    gt = load_benchmark(lay.benchmark_dir("3DMatch"))["room"]
+    to0 = {0: np.eye(4)}
+    for p in gt.pairs:
+        if p.j == p.i + 1 and p.i in to0:
+            to0[p.j] = to0[p.i] @ p.transform
+    rng = np.random.default_rng(0)
+    fourier = (rng.normal(scale=1 / 0.06, size=(32, 3)), rng.uniform(0, 6.28, 32))
+
+    def frag(f):
+        pts, _ = read_cloud(lay.fragment("room", f))
+        d, o, m = simulate_outputs(rng, transform_points(to0[f], pts.astype(np.float64)), np.ones(len(pts), bool),
+                                   noise, fourier=fourier)
+        return SimpleNamespace(points=pts, descriptors=d, overlap=o, matchability=m)
+
+    calls = []
+
+    def predict_benchmark(cfg, data_root, checkpoint, benchmark, device="cpu", max_pairs=None, progress=True):
+        calls.append((str(checkpoint), benchmark, max_pairs))
+        for s, g in load_benchmark(Layout(data_root).benchmark_dir(benchmark)).items():
+            for p in g.pairs:
+                yield SimpleNamespace(scene=s, i=p.i, j=p.j, src=frag(p.j), tgt=frag(p.i), color_coverage=0.8)
+
+    return predict_benchmark, calls
+
+
+def test_pipeline_evaluate_stage_learned_and_icp_from_learned(layout, tmp_path, monkeypatch):
+    import sys as _sys
+
+    from pcrcg.evaluation.run import evaluate
+
+    fake, calls = _fake_predictions(layout)
+    monkeypatch.setitem(_sys.modules, "pcrcg.models.predict", SimpleNamespace(predict_benchmark=fake))
+    ckpt = tmp_path / "model.ckpt"
+    ckpt.write_bytes(b"x")
+    base = {"seed": 0, "views": 2, "eval": {"benchmarks": ["3DMatch", "3DLoMatch"], "n_points": [1000, 250],
+                                          "ransac_iterations": 5000, "max_pairs": None}}
+    res = evaluate(OmegaConf.create({**base, "method": "learned", "icp_init": "identity"}), data_root=layout,
+                   checkpoint=ckpt, out_dir=tmp_path / "learned", progress=False)
+    m = res["metrics"]
+    for b in ("3DMatch", "3DLoMatch"):
+        for n in (1000, 250):
+            assert {f"{b}/rr_{n}", f"{b}/fmr_{n}", f"{b}/ir_{n}", f"{b}/rre_{n}", f"{b}/rte_{n}"} <= set(m)
+        assert m[f"{b}/rre"] == m[f"{b}/rre_1000"]
+    assert m["3DMatch/rr_1000"] == 100.0 and m["3DMatch/fmr_1000"] == 100.0
+    assert m["color_coverage"] == pytest.approx(0.8)
+    assert res["protocol"]["3DMatch"]["pairs_counted_in_rr"] == 3
+    assert len(read_estimates(tmp_path / "learned" / "learned" / "3DMatch" / "1000" / "room" / "est.log")) == 7
+    # ICP started from the learned estimates at the largest N
+    res = evaluate(OmegaConf.create({**base, "method": "icp", "icp_init": "learned"}), data_root=layout,
+                   checkpoint=ckpt, out_dir=tmp_path / "icp", progress=False)
+    assert res["metrics"]["3DMatch/rr"] == 100.0 and res["metrics"]["3DMatch/rte"] < 0.03
+    assert calls[-1] == (str(ckpt), "3DLoMatch", None)
+    with pytest.raises(DataError, match="checkpoint"):
+        evaluate(OmegaConf.create({**base, "method": "learned"}), data_root=layout, checkpoint=tmp_path / "none.ckpt",
+                 out_dir=tmp_path / "x", progress=False)

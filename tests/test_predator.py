@@ -177,3 +177,6 @@ def test_predator_loss_on_perfect_and_random_outputs():
     assert float(good["circle_loss"]) < float(bad["circle_loss"])
     assert float(bad["overlap_loss"]) > 1.0
     assert float(good["n_corr"]) == 40
+    skip = crit(perfect, ov, torch.full((100,), 8.0), points, 40, T, corr, matchability=False)
+    assert "matchability_recall" not in skip and float(skip["matchability_loss"]) == 0.0
+    assert float(skip["loss"]) == pytest.approx(float(good["loss"] - good["matchability_loss"]), abs=1e-6)

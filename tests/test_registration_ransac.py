@@ -44,7 +44,8 @@ def _ok(T_est, T, deg=2.0, m=0.05):
 def test_ransac_recovers_a_known_transform_with_half_outliers(score):
     src, tgt, corr, T, inl = _problem(0, inlier_ratio=0.5)
     res = ransac(src, tgt, corr, RansacConfig(score=score), seed=1)
-    assert _ok(res.transform, T, deg=1.0, m=0.02)
+    # the best 3-point hypothesis, not refitted (as Open3D): within the noise of 3 points
+    assert _ok(res.transform, T, deg=1.5, m=0.04)
     assert res.fitness == pytest.approx(inl.mean(), abs=0.03)
     assert res.iterations < 50000  # early termination
     assert res.transform.shape == (4, 4) and np.allclose(res.transform[3], [0, 0, 0, 1])

@@ -54,6 +54,10 @@ def store(tmp_path_factory):
     ensure_store(uri)
     ids = {}
     tr = RunTracker(uri, "window_size")
+    # an older run of 11x11 seed 0 whose config changed since: the newer run of that seed counts
+    ids["old"] = _log(tr, "window_size=11", {"window_size": 11, "seed": 0},
+                      {"config_hash": "old110", "profile": "cpu", "label": "PCR-CG"},
+                      {f"3DLoMatch/rr_{n}": 0.0 for n in N})
     for ws in (3, 7, 11):
         for seed in (0, 1):
             metrics = {f"3DLoMatch/rr_{n}": _rr(ws, seed, n) for n in N}
@@ -158,6 +162,13 @@ def test_seeds_are_aggregated_as_mean_and_std(store):
     assert f"{np.mean(vals):.1f} ± {np.std(vals, ddof=1):.1f}" in md
     assert f"run {store['ids'][(7, 0)][:8]} · hash h70 · git aaaaaaa · profile cpu · seed 0" in md
     assert "Protocol of these runs: 3DLoMatch: n_pairs 1781; RANSAC iterations 50000; seeds 0, 1" in md
+
+
+def test_newest_run_per_seed_counts(store):
+    df = pd.read_csv(store["out"] / "window_size.csv", dtype={"variant": str})
+    cell = df[(df["variant"] == "11x11") & (df["n_points"] == 5000)].iloc[0]
+    assert cell["n_runs"] == 2 and store["ids"]["old"] not in cell["run_ids"]
+    assert cell["ours_mean"] == pytest.approx((_rr(11, 0, 5000) + _rr(11, 1, 5000)) / 2)
 
 
 def test_profile_filter_keeps_other_profiles_out(store):

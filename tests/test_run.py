@@ -7,6 +7,7 @@ in-process), Hydra, the multirun callback, MLflow (a SQLite store in tmp_path) a
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pandas as pd
@@ -98,7 +99,7 @@ def test_finished_runs_carry_params_tags_metrics_and_artifacts(sweep):
         hashes.add(tags["config_hash"])
         assert params["window_size"] == str(ws) and params["profile.name"] == "tiny"
         assert params["features.name"] == "deep" and params["projection.name"] == "explicit"
-        assert params["eval.n_points"] == "[5000, 2500, 1000, 500, 250]"
+        assert set(json.loads(params["eval.n_points"])) <= set(N_POINTS)  # the profile's sizes
         assert params["protocol.3DLoMatch.n_pairs"] == "12"
         for b in BENCHES:
             for n in N_POINTS:
@@ -181,8 +182,6 @@ def test_without_tracking(tmp_path, monkeypatch):
             f"hydra.run.dir={tmp_path}/out"]
     assert run_cli(args, tmp_path, monkeypatch) == 0
     assert not (tmp_path / "mlflow.db").exists()
-    import json
-
     data = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert data["metrics"]["3DMatch/rr"] == pytest.approx(expected_rr(11, 0, 5000, "3DMatch"))
     assert (tmp_path / "out" / "pcrcg_status.json").is_file()
@@ -202,3 +201,45 @@ def test_parallel_joblib_sweep_writes_one_store(tmp_path, monkeypatch):
     runs = tracked_runs(uri, "window_size")
     assert len(runs) == 4 and all(r.info.status == "FINISHED" for r in runs)
     assert all(len(r.data.metrics) >= 2 * (3 * 5 + 3) for r in runs)
+
+
+def test_run_name_says_what_differs():
+    from pcrcg.pipeline import run_name
+
+    assert run_name(["window_size=7", "+experiment=window_size", "profile=tiny"]) == "window_size=7"
+    assert run_name(["+experiment=projection", "features=rgb", "projection=implicit", "seed=1",
+                     "logger.tracking_uri=x", "stages.train=a.b", "hydra.verbose=true"]) == \
+        "features=rgb projection=implicit seed=1"
+    assert run_name([]) == "defaults"
+
+
+def test_method_label():
+    from pcrcg.pipeline import method_label
+
+    assert method_label({"method": "learned", "features": {"name": "none"}, "projection": {"name": "explicit"}}) \
+        == "Predator"
+    assert method_label({"method": "learned", "features": {"name": "deep"}, "projection": {"name": "explicit"}}) \
+        == "PCR-CG"
+    assert method_label({"method": "color_icp"}) == "ColorICP"
+
+
+def test_cli_argument_parsing(tmp_path):
+    from pcrcg.config import CONF_DIR
+    from pcrcg.run import cli_overrides, cli_search_dirs
+
+    argv = ["--config-path", str(tmp_path), "-cn", "run", "+experiment=views", "views=1,2", "-m", "--multirun"]
+    assert cli_overrides(argv) == ["+experiment=views", "views=1,2"]
+    assert cli_search_dirs(argv) == [tmp_path.resolve()]
+    assert cli_search_dirs([f"--config-dir={tmp_path}"]) == [CONF_DIR, tmp_path.resolve()]
+
+
+def test_bad_value_in_an_experiment_sweep_stops_before_any_job(tmp_path, monkeypatch, capsys):
+    conf = make_conf(tmp_path / "conf")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path}/mlflow.db")
+    args = ["--config-path", str(conf), "+experiment=window_size", "hydra.sweeper.params.window_size='3,8'",
+            *FAKES, f"hydra.sweep.dir={tmp_path}/multirun", "-m"]
+    assert run_cli(args, tmp_path, monkeypatch) == 2
+    err = capsys.readouterr().err
+    assert "invalid config value window_size=8" in err and "no job was started" in err
+    assert not (tmp_path / "mlflow.db").exists()
+    assert not list(tmp_path.rglob("pcrcg_status.json"))

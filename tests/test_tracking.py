@@ -33,6 +33,7 @@ def _cfg(**over):
         "model": {"name": "predator", "dims": [64, 128]}, "eval": {"n_points": [5000, 250]},
         "logger": {"name": "mlflow", "tracking_uri": None}, "paths": {"data": "data"},
         "runtime": {"device": "auto"}, "stages": {"train": "a.b", "evaluate": "c.d"},
+        "registration": {"n_points": [5000]},
     }
     cfg = OmegaConf.create(base)
     for k, v in over.items():
@@ -51,7 +52,8 @@ def test_config_hash_ignores_bookkeeping_and_sees_everything_else():
         assert config_hash(_cfg(**{key: value})) != h, key
     # the training hash also ignores evaluation-only settings (checkpoint reuse across them)
     t = config_hash(_cfg(), TRAIN_HASH_EXCLUDE)
-    for key, value in (("method", "icp"), ("icp_init", "learned"), ("eval.n_points", [5000]), ("stages.evaluate", "x.y")):
+    for key, value in (("method", "icp"), ("icp_init", "learned"), ("eval.n_points", [5000]), ("stages.evaluate", "x.y"),
+                       ("registration.n_points", [250])):
         assert config_hash(_cfg(**{key: value}), TRAIN_HASH_EXCLUDE) == t, key
     assert config_hash(_cfg(window_size=7), TRAIN_HASH_EXCLUDE) != t
 

@@ -82,36 +82,45 @@ def test_a_few_steps_lower_the_loss():
 
 
 class CountSteps(Callback):
-    def __init__(self):
+    def __init__(self, fail_at: int | None = None):
         self.steps = 0
+        self.fail_at = fail_at
 
-    def on_train_batch_end(self, *args):
+    def on_train_batch_end(self, trainer, *args):
         self.steps += 1
+        if self.fail_at is not None and trainer.global_step == self.fail_at:
+            raise RuntimeError("simulated crash")
 
 
-def test_train_checkpoint_and_resume(tmp_path, toy_root):
-    cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=2), "seed": 0, "data": {"root": str(toy_root)}}
+def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root):
+    # no periodic checkpoint before the crash: last.ckpt must come from the crash itself
+    cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=4, checkpoint_every_n_steps=100), "seed": 0,
+           "data": {"root": str(toy_root)}}
     out_dir = tmp_path / "run"
-    first = CountSteps()
-    res = train(cfg, out_dir=out_dir, callbacks=[first])
-    last = Path(res["last_checkpoint"])
+    first = CountSteps(fail_at=2)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg, out_dir=out_dir, callbacks=[first])
+    last = out_dir / "checkpoints" / "last.ckpt"
     assert last.is_file() and first.steps == 2
-    assert res["metrics"]["train/global_step"] == 2
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == 2 and ck["optimizer_states"][0]["state"]  # momentum buffers saved
-    assert ck["hyper_parameters"]["model"]["neighbor_limits"] == res["neighbor_limits"]
+    assert len(ck["hyper_parameters"]["model"]["neighbor_limits"]) == 3
     assert (out_dir / "logs" / "metrics.csv").is_file()  # curves from a 2-step run
-    assert any(k.startswith("train/loss") for k in res["history"])
     w_before = ck["state_dict"]["net.encoder.0.conv.weights"]
 
-    # "interrupted" after 2 steps: the same call with a larger budget resumes from last.ckpt
-    cfg["trainer"]["max_steps"] = 4
+    # the same call again: resumes from last.ckpt and runs only the missing steps
     second = CountSteps()
-    res2 = train(cfg, out_dir=out_dir, callbacks=[second])
-    assert second.steps == 2  # only the missing steps ran
-    ck2 = torch.load(res2["last_checkpoint"], map_location="cpu", weights_only=False)
-    assert ck2["global_step"] == 4
+    res = train(cfg, out_dir=out_dir, callbacks=[second])
+    assert second.steps == 2
+    assert res["metrics"]["train/global_step"] == 4
+    assert any(k.startswith("train/loss") for k in res["history"])
+    ck2 = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
+    assert ck2["global_step"] == 4 and ck2["epoch"] >= ck["epoch"]
     assert not torch.equal(ck2["state_dict"]["net.encoder.0.conv.weights"], w_before)
+    # a finished run called again does nothing more
+    third = CountSteps()
+    train(cfg, out_dir=out_dir, callbacks=[third])
+    assert third.steps == 0
 
 
 def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):

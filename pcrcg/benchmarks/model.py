@@ -1,7 +1,7 @@
 """Speed and memory of the 3D network stage (prints figures; asserts nothing).
 
 ``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [pairs=4] [reps=3] [device=cpu]
-[threads=2] [root=null] [color=none|rgb|deep]``
+[threads=1] [root=null] [color=none|rgb|deep]``
 
 Per profile (model sizes from ``conf/profile/<p>.yaml`` + ``conf/model/predator.yaml``), on the
 generated data set ``data/synthmatch-<p>`` when it exists (else a synthetic box-room pair sized for
@@ -70,13 +70,17 @@ def _samples(root: Path | None, voxel: float, n: int, n_views: int) -> tuple[lis
             f"synthetic box-room pairs ({root} not found)")
 
 
-def _lifting(color: str) -> dict | None:
+def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
+    """Implicit projection of 2 views (explicit adds the 2D matcher, timed by ``benchmarks.vision``);
+    image sizes from the profile's ``encoder2d`` / ``lifting`` sections."""
     if color == "none":
         return None
     feats = {"name": color, "dim": 3 if color == "rgb" else 32}
-    out = {"projection": {"name": "implicit", "views": 2}, "features": feats}
+    grid = (profile.get("lifting") or {}).get("image_size")
+    out = {"projection": {"name": "implicit", "views": 2, "image_size": grid}, "features": feats}
     if color == "deep":
-        out["encoder2d"] = {"name": "scratch", "arch": "resnet18", "out_dim": 32, "weights": None}
+        out["encoder2d"] = {"name": "scratch", "arch": "resnet18", "out_dim": 32, "weights": None,
+                            "image_size": (profile.get("encoder2d") or {}).get("image_size")}
     return out
 
 
@@ -91,7 +95,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     cfg = profile_config(profile)
     m, t = cfg["model"], cfg["trainer"]
     data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
-    lifting = _lifting(color)
+    lifting = _lifting(color, cfg["profile"])
     samples, source = _samples(data_root, m["voxel_size"], pairs, 2 if lifting else 0)
     spec0 = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], (), m["max_points"])
     clouds = [c for s in samples for c in (s.src_points, s.tgt_points)]
@@ -163,7 +167,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
 def _parse(argv: list[str]) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
-    args = {"profiles": ["tiny", "cpu"], "pairs": 4, "reps": 3, "device": "cpu", "threads": 2, "root": None,
+    args = {"profiles": ["tiny", "cpu"], "pairs": 4, "reps": 3, "device": "cpu", "threads": 1, "root": None,
             "color": "none", "child": False}
     for a in argv:
         k, _, v = a.partition("=")

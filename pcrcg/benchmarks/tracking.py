@@ -119,10 +119,13 @@ def main(argv: list[str] | None = None) -> None:
         t_skip = time.perf_counter() - t
         assert out.status == "skipped", out
 
+    from pcrcg.tracking.hashing import flat_params
+
+    n_params = len(flat_params(cfg)) + 2
     med = statistics.median
     print()
-    print(f"tracking overhead per run (median of {args.runs}; no-op stages, 48 metrics, ~100 params, "
-          f"1 MiB checkpoint, 2 est.log folders, config files, plot)")
+    print(f"tracking overhead per run (median of {args.runs}; no-op stages; {n_params} params, 39 metrics, "
+          f"a 3-step curve, 1 MiB checkpoint, 2 est.log folders, config files, plot)")
     print(f"  logger=none    {med(plain):6.3f} s/run   (validate, hash, outputs, per-run plot)")
     print(f"  logger=mlflow  {med(tracked):6.3f} s/run")
     print(f"  overhead       {med(tracked) - med(plain):6.3f} s/run")

@@ -17,7 +17,7 @@ import os
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 from tqdm import tqdm
@@ -204,49 +204,20 @@ def run_classical(
 # --------------------------------------------------------------------------- learned model
 
 
-def predict_outputs(cfg: Any, data_root: str | os.PathLike, checkpoint: str | os.PathLike, benchmark: str,
-                    device: str = "cpu", max_pairs: int | None = None) -> Iterable[Any]:
-    """Per-pair network outputs (objects with ``scene, i, j, src, tgt[, color_coverage]``).
-
-    Uses ``pcrcg.models.predict.predict_benchmark(cfg, data_root, checkpoint, benchmark, device)``
-    when the model stage provides it; otherwise loads the Lightning checkpoint and runs
-    ``PCRCGModule.predict_pair`` over ``PairDataModule.benchmark_dataloader(benchmark)``.
-    """
+def predict_outputs(cfg: Any, data_root: str | os.PathLike, checkpoint: str | os.PathLike | None, benchmark: str,
+                    device: str = "cpu", max_pairs: int | None = None, progress: bool = True) -> Iterable[Any]:
+    """Per-pair network outputs (objects with ``scene, i, j, src, tgt[, color_coverage]``) from the
+    model stage's hook ``pcrcg.models.predict.predict_benchmark``."""
     if checkpoint is None or not Path(checkpoint).is_file():
         raise DataError(checkpoint, "checkpoint of the learned model is missing (method=learned needs one)")
-    try:
-        from pcrcg.models.predict import predict_benchmark  # type: ignore[import-not-found]
-    except ImportError:
-        predict_benchmark = None
-    if predict_benchmark is not None:
-        it = predict_benchmark(cfg, data_root=data_root, checkpoint=checkpoint, benchmark=benchmark, device=device)
-    else:
-        it = _predict_with_lightning(cfg, data_root, checkpoint, benchmark, device)
+    from pcrcg.models.predict import predict_benchmark
+
+    it = predict_benchmark(cfg, data_root=data_root, checkpoint=checkpoint, benchmark=benchmark, device=device,
+                           max_pairs=max_pairs, progress=progress)
     for k, out in enumerate(it):
         if max_pairs is not None and k >= max_pairs:
             break
         yield out
-
-
-def _predict_with_lightning(cfg: Any, data_root, checkpoint, benchmark: str, device: str) -> Iterable[Any]:
-    import torch
-
-    from pcrcg.config import color_enabled
-    from pcrcg.models.datamodule import PairDataModule
-    from pcrcg.models.module import PCRCGModule
-
-    module = PCRCGModule.load_from_checkpoint(str(checkpoint), map_location=device)
-    module.eval()
-    data = _plain(cfg)
-    n_views = int(data.get("views", 0) or 0) if color_enabled(data) else 0
-    dm = PairDataModule.from_config(data_root, data["model"], data.get("trainer", {}) or {}, n_views=n_views)
-    state = torch.load(str(checkpoint), map_location="cpu", weights_only=False)
-    dm_state = state.get(type(dm).__qualname__) or state.get("datamodule_state") or {}
-    if dm_state:
-        dm.load_state_dict(dm_state)
-    dm.setup("predict")
-    for batch in dm.benchmark_dataloader(benchmark):
-        yield module.predict_pair(batch.to(device))
 
 
 # --------------------------------------------------------------------------- the pipeline's stage
@@ -286,7 +257,12 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
     max_pairs = _select(cfg, "eval.max_pairs", None)
     max_pairs = int(max_pairs) if max_pairs is not None else None
     predator_variant = bool(_select(cfg, "eval.predator_variant", False))
+    if method != "learned" and method not in CLASSICAL:
+        raise ConfigError("method", method, "learned | " + " | ".join(CLASSICAL))
+    from_learned = method == "learned" or (method in ("icp", "color_icp") and _select(cfg, "icp_init") == "learned")
     rcfg, bcfg = configs_from(cfg, device)
+    if method != "learned":  # ICP starts from the learned estimates at the largest N only
+        rcfg = dataclasses.replace(rcfg, n_points=(max(rcfg.n_points),))
     th = thresholds_from(cfg)
     out_dir = Path(out_dir)
     gts = check_layout(data_root, benchmarks)
@@ -297,9 +273,9 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
     for b in benchmarks:
         gt = gts[b]
         protocol[b] = _protocol(rcfg, gt, th, seed, predator_variant)
-        if method == "learned" or (method in ("icp", "color_icp") and _select(cfg, "icp_init") == "learned"):
+        if from_learned:
             est_dir = out_dir / "learned" / b
-            outputs = predict_outputs(cfg, data_root, checkpoint, b, rcfg.device, max_pairs)
+            outputs = predict_outputs(cfg, data_root, checkpoint, b, rcfg.device, max_pairs, progress)
             m = evaluate_model_outputs(outputs, gt, cfg=rcfg, est_dir=est_dir, seed=seed,
                                        predator_variant=predator_variant, only_evaluated=max_pairs is not None,
                                        progress=progress, **th)
@@ -315,8 +291,6 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
             init, _ = load_estimates(init_dir, gt.keys())
         else:
             init = None
-        if method not in CLASSICAL:
-            raise ConfigError("method", method, "learned | " + " | ".join(CLASSICAL))
         est_dir = out_dir / method / b
         res = run_classical(method, data_root, b, cfg=bcfg, out_dir=est_dir, init=init,
                             n_views=int(_select(cfg, "views", 2) or 2), seed=seed, max_pairs=max_pairs, gt=gt,

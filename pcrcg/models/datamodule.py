@@ -284,4 +284,4 @@ class PairDataModule(L.LightningDataModule):
             overlap_radius=loss.get("overlap_radius", 1.5), neighbor_limits=model_cfg.get("neighbor_limits"),
             keep_ratio=model_cfg.get("neighbor_keep_ratio", 0.8), augment=trainer_cfg.get("augment"),
             num_workers=trainer_cfg.get("num_workers", 0), batch_size=trainer_cfg.get("batch_size", 1),
-            cache_dir=trainer_cfg.get("cache_dir"), **kw)
+            cache_dir=trainer_cfg.get("cache_dir"), cache_size=int(trainer_cfg.get("cache_size") or 1024), **kw)

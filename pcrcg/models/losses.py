@@ -170,7 +170,9 @@ class PredatorLoss(torch.nn.Module):
     def forward(self, descriptors: torch.Tensor, overlap_logits: torch.Tensor, matchability_logits: torch.Tensor,
                 points: torch.Tensor, n_src: int, transform: torch.Tensor, corr: torch.Tensor,
                 w_matchability: float | torch.Tensor = 1.0,
-                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+                generator: torch.Generator | None = None, matchability: bool = True) -> dict[str, torch.Tensor]:
+        """``matchability=False`` skips the matchability labels (an (n x m) descriptor product and two
+        arg-maxes over the overlap points; a third of a CPU step) while its loss weight is 0."""
         c = self.cfg
         dev = descriptors.device
         src_xyz = transform_torch(transform, points[:n_src])
@@ -184,14 +186,18 @@ class PredatorLoss(torch.nn.Module):
         stats["overlap_precision"], stats["overlap_recall"] = precision_recall(torch.sigmoid(overlap_logits), ov_lab)
 
         # matchability: overlap points only
-        s_idx = torch.unique(corr[:, 0]) if corr.numel() else corr.new_zeros(0)
-        t_idx = torch.unique(corr[:, 1]) if corr.numel() else corr.new_zeros(0)
-        l_src, l_tgt = matchability_labels(src_xyz[s_idx], tgt_xyz[t_idx], descriptors[s_idx].detach(),
-                                           descriptors[n_src + t_idx].detach(), self.radius("matchability_radius"))
-        m_lab = torch.cat([l_src, l_tgt])
-        m_logit = torch.cat([matchability_logits[s_idx], matchability_logits[n_src + t_idx]])
-        stats["matchability_loss"] = weighted_bce(m_logit, m_lab)
-        stats["matchability_precision"], stats["matchability_recall"] = precision_recall(torch.sigmoid(m_logit), m_lab)
+        if matchability:
+            s_idx = torch.unique(corr[:, 0]) if corr.numel() else corr.new_zeros(0)
+            t_idx = torch.unique(corr[:, 1]) if corr.numel() else corr.new_zeros(0)
+            l_src, l_tgt = matchability_labels(src_xyz[s_idx], tgt_xyz[t_idx], descriptors[s_idx].detach(),
+                                               descriptors[n_src + t_idx].detach(), self.radius("matchability_radius"))
+            m_lab = torch.cat([l_src, l_tgt])
+            m_logit = torch.cat([matchability_logits[s_idx], matchability_logits[n_src + t_idx]])
+            stats["matchability_loss"] = weighted_bce(m_logit, m_lab)
+            stats["matchability_precision"], stats["matchability_recall"] = precision_recall(
+                torch.sigmoid(m_logit), m_lab)
+        else:
+            stats["matchability_loss"] = matchability_logits.sum() * 0.0
 
         # circle loss on sampled correspondences closer than pos_radius
         pos_r = self.radius("pos_radius")

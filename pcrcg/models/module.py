@@ -143,8 +143,10 @@ class PCRCGModule(L.LightningModule):
         return self.net(feats, batch.pyramid), coverage
 
     def compute_stats(self, batch: PairBatch, out: PredatorOutput) -> dict[str, torch.Tensor]:
+        # in training, the matchability labels are only computed while their loss is on
+        need = (not self.training) or (self.loss_cfg.w_matchability > 0 and bool(self.matchability_gate > 0))
         return self.criterion(out.descriptors, out.overlap_logits, out.matchability_logits, batch.pyramid.points[0],
-                              batch.n_src, batch.transform, batch.corr, self.matchability_gate)
+                              batch.n_src, batch.transform, batch.corr, self.matchability_gate, matchability=need)
 
     # ------------------------------------------------------------------ steps
     def training_step(self, batch: PairBatch, batch_idx: int):
@@ -156,7 +158,7 @@ class PCRCGModule(L.LightningModule):
         out, coverage = self(batch)
         stats = self.compute_stats(batch, out)
         if self._trainer is not None:
-            self.log_dict({f"train/{k}": stats[k].detach() for k in STAT_KEYS}, batch_size=1, prog_bar=False)
+            self.log_dict({f"train/{k}": stats[k].detach() for k in STAT_KEYS if k in stats}, batch_size=1)
             self.log("train/loss_step", stats["loss"].detach(), batch_size=1, prog_bar=True, logger=False)
             if coverage == coverage:
                 self.log("train/color_coverage", coverage, batch_size=1)
@@ -168,8 +170,8 @@ class PCRCGModule(L.LightningModule):
         out, coverage = self(batch)
         stats = self.compute_stats(batch, out)
         self._val_recalls.append(float(stats["recall"]))
-        self.log_dict({f"val/{k}": stats[k] for k in STAT_KEYS}, batch_size=1, on_epoch=True, on_step=False,
-                      prog_bar=False)
+        self.log_dict({f"val/{k}": stats[k] for k in STAT_KEYS if k in stats}, batch_size=1, on_epoch=True,
+                      on_step=False)
         if coverage == coverage:
             self.log("val/color_coverage", coverage, batch_size=1, on_epoch=True, on_step=False)
 

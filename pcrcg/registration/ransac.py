@@ -68,7 +68,7 @@ class RansacConfig:
     edge_length: float = 0.9
     max_iterations: int = 50000
     confidence: float = 0.999
-    batch_size: int = 256
+    batch_size: int = 32
     max_batch: int = 8192
     refine: int = 0
     dtype: str = "float32"

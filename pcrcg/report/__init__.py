@@ -23,7 +23,7 @@ from pcrcg.report.runs import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 
-__all__ = ["ReportResult", "generate_report", "tables_for_experiment"]
+__all__ = ["ReportResult", "generate_report", "tables_for_experiment", "write_experiment_tables"]
 
 
 @dataclass
@@ -98,6 +98,38 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     result.index.write_text(_index(result, runs, experiments, profiles, command))
     result.files.append(result.index)
     return result
+
+
+def write_experiment_tables(experiment: str, uri: str, profile: str | None, out_dir: str | os.PathLike,
+                            base_dir: str | os.PathLike, prefix: str = "[report]") -> list[Path]:
+    """Write the tables fed by ``experiment`` (conf/report.yaml) and print where they are.
+
+    Used at the end of ``pcrcg.run``; never raises (the runs are safe in MLflow and the report
+    can be redone with the printed command). Returns the Markdown files written.
+    """
+    from pcrcg.config import CONF_DIR
+
+    report_cfg = OmegaConf.load(CONF_DIR / "report.yaml")
+    for key in ("hydra", "defaults"):
+        report_cfg.pop(key, None)
+    specs = parse_specs(OmegaConf.to_container(report_cfg.specs, resolve=True))  # type: ignore[arg-type]
+    names = tables_for_experiment(specs, experiment)
+    if not names:
+        print(f"{prefix} experiment {experiment!r} feeds no paper table; the tables come from "
+              f"`python -m pcrcg.run +experiment=<table> -m` and `python -m pcrcg.report`")
+        return []
+    command = f"python -m pcrcg.report tables=[{','.join(names)}]" + (f" profile={profile}" if profile else "")
+    cfg = OmegaConf.merge(report_cfg, {"tables": names, "tracking_uri": uri, "profile": profile,
+                                       "out_dir": str(out_dir)})
+    try:
+        result = generate_report(cfg, base_dir=base_dir, command=command)
+    except Exception as e:  # noqa: BLE001
+        print(f"{prefix} could not write the tables ({type(e).__name__}: {e}); later: {command}")
+        return []
+    files = [result.out_dir / f"{n}.md" for n in names]
+    for name, f in zip(names, files):
+        print(f"{prefix} table {name}: {f} (also .tex, .csv; all tables: {result.index})")
+    return files
 
 
 def _profile_name(node: Any) -> str | None:

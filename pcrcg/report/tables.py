@@ -1,7 +1,8 @@
 """Fill a table spec from runs and the paper's numbers: one :class:`Cell` per (row, column).
 
-Seeds (any runs of a cell with different config hashes) are aggregated as mean and sample
-standard deviation; of several FINISHED runs with the same config hash the newest counts.
+Seeds are aggregated as mean and sample standard deviation; of several FINISHED runs of a
+cell with the same seed (the same config run again, or a config that changed since) the
+newest counts.
 A cell without a finished run carries the reason (failed with its error, not run with its
 reason, still running, no such run, or the row's own reason).
 """
@@ -125,10 +126,12 @@ def _paper_value(paper: pd.DataFrame, table: str, row: Row, col: Column) -> floa
     return float(sel.iloc[0]["value"]) if len(sel) else None
 
 
-def _newest_per_hash(df: pd.DataFrame) -> pd.DataFrame:
-    if df.empty or "tags.config_hash" not in df.columns:
+def _newest_per_seed(df: pd.DataFrame) -> pd.DataFrame:
+    """One run per seed: the newest (a config that changed since keeps only its latest run)."""
+    key = "params.seed" if "params.seed" in df.columns else "tags.config_hash"
+    if df.empty or key not in df.columns:
         return df
-    return df.sort_values("start_time").groupby("tags.config_hash", dropna=False, sort=False).tail(1)
+    return df.sort_values("start_time").groupby(key, dropna=False, sort=False).tail(1)
 
 
 def _where_text(where: Mapping[str, Any]) -> str:
@@ -148,6 +151,18 @@ def _missing_reason(candidates: pd.DataFrame, experiment: str, where: Mapping[st
         return f"{status.lower()} (run {str(last['run_id'])[:8]})"
     prof = f" at profile {profile}" if profile else ""
     return f"no run of experiment '{experiment}' with {_where_text(where)}{prof}"
+
+
+def _no_value_reason(done: pd.DataFrame, col: Column) -> str:
+    sizes = set(_values(done, "params.eval.n_points"))
+    if col.n_points is not None and sizes:
+        import json
+
+        evaluated = {n for text in sizes for n in json.loads(text)}
+        if col.n_points not in evaluated:
+            return f"not evaluated at {col.n_points} points (eval.n_points={'/'.join(sorted(sizes))})"
+    return (f"no value of {' or '.join(col.keys())} in {len(done)} finished run(s) "
+            f"(not logged, or NaN: e.g. RRE when no pair registered)")
 
 
 def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
@@ -172,7 +187,7 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
                 cell.reason = row.reason
                 continue
             cand = row_runs[match(row_runs, col.where)] if col.where else row_runs
-            done = _newest_per_hash(cand[cand["status"] == "FINISHED"])
+            done = _newest_per_seed(cand[cand["status"] == "FINISHED"])
             if done.empty:
                 cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof)
                 continue
@@ -189,15 +204,14 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             if not vals:
                 # (MLflow's table shows a metric that was not logged and a NaN alike)
                 cell.runs = [_ref(rec) for _, rec in done.iterrows()]
-                cell.reason = (f"no value of {' or '.join(col.keys())} in {len(done)} finished run(s) "
-                               f"(not logged, or NaN: e.g. RRE when no pair registered)")
+                cell.reason = _no_value_reason(done, col)
                 continue
             cell.values = vals
             cell.mean = float(np.mean(vals))
             cell.std = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
         cov_col = "metrics.color_coverage"
         if cov_col in row_runs.columns:
-            done = _newest_per_hash(row_runs[row_runs["status"] == "FINISHED"])
+            done = _newest_per_seed(row_runs[row_runs["status"] == "FINISHED"])
             vals = [float(v) for v in done[cov_col] if v is not None and not math.isnan(float(v))]
             if vals:
                 coverage[row.text] = (float(np.mean(vals)), float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0,
@@ -236,7 +250,7 @@ def protocol_summary(runs: pd.DataFrame) -> list[str]:
             out.append(f"{b}: " + ", ".join(facts))
     ransac = [f"{c.split('ransac_')[-1].split('.')[-1]} {'/'.join(_values(runs, c))}"
               for c in sorted(runs.columns) if c.startswith("params.eval.ransac_") and _values(runs, c)]
-    if ransac and "ransac" not in benches:
+    if ransac and "ransac" not in benches and not any("ransac" in line for line in out):
         out.append("RANSAC " + ", ".join(ransac))
     seeds = _values(runs, "params.seed")
     if seeds:

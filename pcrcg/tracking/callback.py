@@ -124,7 +124,10 @@ class TrackingCallback(Callback):
             print(line)
         uri = next((s["tracking_uri"] for s in statuses if s.get("tracking_uri")), None)
         if config.runtime.get("report_on_end", False) and uri is not None:
-            self._report(config, uri)
+            from pcrcg.report import write_experiment_tables
+
+            write_experiment_tables(str(config.experiment_name), uri, OmegaConf.select(config, "profile.name"),
+                                    str(config.runtime.get("report_dir", "reports")), _base_dir(config), "[sweep]")
         if uri is not None:
             from pcrcg.tracking.store import ui_command
 
@@ -133,28 +136,3 @@ class TrackingCallback(Callback):
         if failed:
             _stop(f"[sweep] {len(failed)} of {len(statuses)} jobs failed (recorded as FAILED in MLflow; "
                   f"relaunch the same command to run only what is missing)", 1)
-
-    def _report(self, config: DictConfig, uri: str) -> None:
-        from pcrcg.config import CONF_DIR
-        from pcrcg.report import generate_report, tables_for_experiment
-        from pcrcg.report.spec import parse_specs
-
-        report_cfg = OmegaConf.load(CONF_DIR / "report.yaml")
-        specs = parse_specs(OmegaConf.to_container(report_cfg.specs, resolve=True))  # type: ignore[arg-type]
-        names = tables_for_experiment(specs, str(config.experiment_name))
-        if not names:
-            return
-        base = _base_dir(config)
-        profile = OmegaConf.select(config, "profile.name")
-        cfg = OmegaConf.merge(report_cfg, {"tables": names, "tracking_uri": uri, "profile": profile,
-                                           "out_dir": str(config.runtime.get("report_dir", "reports"))})
-        for key in ("hydra", "defaults"):
-            cfg.pop(key, None)
-        command = f"python -m pcrcg.report tables=[{','.join(names)}] profile={profile}"
-        try:
-            result = generate_report(cfg, base_dir=base, command=command)
-        except Exception as e:  # noqa: BLE001 - the runs are safe in MLflow; the report can be redone
-            print(f"[sweep] could not write the report ({type(e).__name__}: {e}); run: {command}")
-            return
-        for name in names:
-            print(f"[sweep] table {name}: {result.out_dir / (name + '.md')} (also .tex, .csv)")

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 # top-level keys that do not change what a run computes
 HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime")
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
-TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "stages.evaluate")
+TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 
 
 def to_plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:

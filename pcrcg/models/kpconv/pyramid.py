@@ -57,7 +57,7 @@ class PyramidSpec:
 
 @dataclass
 class FragmentPyramid:
-    """NumPy pyramid of one fragment (see module docstring for shapes)."""
+    """NumPy pyramid of one fragment (see module docstring for shapes; indices int32)."""
 
     points: list[np.ndarray]
     neighbors: list[np.ndarray]
@@ -93,12 +93,13 @@ def build_pyramid(points: np.ndarray, spec: PyramidSpec, rng: np.random.Generato
     """The pyramid of one cloud: points (N, 3) at any density -> :class:`FragmentPyramid`."""
     pts = level_points(points, spec, rng)
     neighbors, pools, ups = [], [], []
+    i32 = lambda a: a.astype(np.int32)  # noqa: E731  (halves the cache; widened when stacked)
     for layer, p in enumerate(pts):
         r = spec.radius(layer)
-        neighbors.append(radius_neighbors(p, p, r, spec.limit(layer), workers))
+        neighbors.append(i32(radius_neighbors(p, p, r, spec.limit(layer), workers)))
         if layer + 1 < len(pts):
-            pools.append(radius_neighbors(pts[layer + 1], p, r, spec.limit(layer), workers))
-            ups.append(nearest_neighbor(p, pts[layer + 1], workers))
+            pools.append(i32(radius_neighbors(pts[layer + 1], p, r, spec.limit(layer), workers)))
+            ups.append(i32(nearest_neighbor(p, pts[layer + 1], workers)))
     return FragmentPyramid(pts, neighbors, pools, ups)
 
 
@@ -148,6 +149,7 @@ class TensorPyramid:
 
 
 def _remap(idx: np.ndarray, n_own: int, offset: int, n_total: int) -> np.ndarray:
+    idx = idx.astype(np.int64)
     return np.where(idx < n_own, idx + offset, n_total)
 
 
