@@ -105,18 +105,19 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root):
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == 2 and ck["optimizer_states"][0]["state"]  # momentum buffers saved
     assert len(ck["hyper_parameters"]["model"]["neighbor_limits"]) == 3
-    assert (out_dir / "logs" / "metrics.csv").is_file()  # curves from a 2-step run
+    assert list((out_dir / "logs").glob("version_0/metrics.csv"))  # curves from a 2-step run
     w_before = ck["state_dict"]["net.encoder.0.conv.weights"]
 
     # the same call again: resumes from last.ckpt and runs only the missing steps
     second = CountSteps()
     res = train(cfg, out_dir=out_dir, callbacks=[second])
     assert second.steps == 2
-    assert res["metrics"]["train/global_step"] == 4
+    assert res["metrics"]["train/global_step"] == 4, res["metrics"]
     assert any(k.startswith("train/loss") for k in res["history"])
     ck2 = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
     assert ck2["global_step"] == 4 and ck2["epoch"] >= ck["epoch"]
     assert not torch.equal(ck2["state_dict"]["net.encoder.0.conv.weights"], w_before)
+    assert list((out_dir / "logs").glob("version_1/metrics.csv"))  # the first curves are kept
     # a finished run called again does nothing more
     third = CountSteps()
     train(cfg, out_dir=out_dir, callbacks=[third])

@@ -5,8 +5,11 @@
   the Lightning module described by a root config (nodes ``model``, ``trainer``, ``data.root``,
   ``seed`` and, for color, ``projection``/``features``/``encoder2d``/``matcher2d``); ``checkpoint``
   is the best checkpoint (the last one when no validation ran). Checkpoints go to
-  ``<out_dir>/checkpoints`` (``last.ckpt``, ``best.ckpt``); a run whose ``last.ckpt`` exists resumes
-  from it (the contract of :func:`pcrcg.pipeline.train_model`).
+  ``<out_dir>/checkpoints``: ``best.ckpt`` (lowest ``trainer.monitor``) and ``last.ckpt`` (every
+  ``trainer.checkpoint_every_n_steps`` steps, every epoch end, and on a crash or Ctrl-C); a run whose
+  ``last.ckpt`` exists resumes from it. Without a logger, curves go to
+  ``<out_dir>/logs/version_<k>/metrics.csv`` (one version per start). This is the contract of
+  :func:`pcrcg.pipeline.train_model`.
 * :func:`load_module` ``(checkpoint, device=None) -> PCRCGModule`` in eval mode.
 * :func:`infer` ``(checkpoint_or_module, root, split, device=None, max_pairs=None) -> Iterator[PairOutput]``:
   per-pair outputs on a benchmark (``3DMatch``/``3DLoMatch``) or split, each fragment in its own frame.
@@ -18,6 +21,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import time
 import warnings
 from pathlib import Path
@@ -65,33 +69,49 @@ def _checkpoint_dir(out_dir: Path) -> Path:
     return out_dir / "checkpoints"
 
 
-class SaveLastOnException(Callback):
-    """Writes ``last.ckpt`` when training stops on an exception or Ctrl-C, so the run resumes from
-    where it stopped (Lightning's ``OnExceptionCheckpoint`` deletes its file at teardown)."""
+class LastCheckpoint(Callback):
+    """Keeps ``last.ckpt`` current: every ``every_n_steps`` optimiser steps, at the end of every
+    epoch (also when ``max_steps`` ends one early) and when training stops on an exception or Ctrl-C,
+    so an interrupted run resumes where it stopped. Written to a temporary file, then renamed."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, every_n_steps: int | None = None):
         self.path = Path(path)
+        self.every = int(every_n_steps or 0)
+        self._saved_step = -1
+
+    def save(self, trainer: L.Trainer) -> None:
+        if trainer.sanity_checking or trainer.global_step == 0 or trainer.global_step == self._saved_step:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(f"{self.path.stem}.tmp-{os.getpid()}.ckpt")
+        trainer.save_checkpoint(str(tmp))
+        if trainer.is_global_zero:
+            os.replace(tmp, self.path)
+        self._saved_step = trainer.global_step
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        if self.every and trainer.global_step % self.every == 0:
+            self.save(trainer)
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.save(trainer)
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
-        if trainer.global_step > 0:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            trainer.save_checkpoint(str(self.path))
+        self.save(trainer)
 
 
 def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
-                  extra_callbacks: Sequence[Callback] = ()) -> tuple[L.Trainer, ModelCheckpoint, ModelCheckpoint]:
-    """The Lightning trainer with last/best/on-exception checkpoints; returns (trainer, last_cb, best_cb)."""
+                  extra_callbacks: Sequence[Callback] = ()) -> tuple[L.Trainer, "LastCheckpoint", ModelCheckpoint]:
+    """The Lightning trainer with ``last.ckpt`` / ``best.ckpt``; returns (trainer, last_cb, best_cb)."""
     ckdir = _checkpoint_dir(out_dir)
-    every = tcfg.get("checkpoint_every_n_steps") or None
-    last_cb = ModelCheckpoint(dirpath=ckdir, filename="step{step}", save_top_k=0, save_last=True,
-                              every_n_train_steps=every, save_on_train_epoch_end=True)
+    last_cb = LastCheckpoint(ckdir / "last.ckpt", tcfg.get("checkpoint_every_n_steps"))
     best_cb = ModelCheckpoint(dirpath=ckdir, filename="best", monitor=tcfg.get("monitor", "val/circle_loss"),
                               mode=tcfg.get("monitor_mode", "min"), save_top_k=1, save_last=False,
                               enable_version_counter=False, auto_insert_metric_name=False)
-    exc_cb = SaveLastOnException(ckdir / "last.ckpt")
     if logger is None:
-        logger = CSVLogger(str(out_dir), name="logs", version="") if tcfg.get("csv_logger", True) else False
-    callbacks: list[Callback] = [last_cb, best_cb, exc_cb, *extra_callbacks]
+        # one version folder per (re)start: a resumed run does not overwrite the curves so far
+        logger = CSVLogger(str(out_dir), name="logs") if tcfg.get("csv_logger", True) else False
+    callbacks: list[Callback] = [best_cb, last_cb, *extra_callbacks]
     if logger:
         from lightning.pytorch.callbacks import LearningRateMonitor
 
