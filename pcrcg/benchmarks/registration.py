@@ -13,7 +13,9 @@ with noise, matchability is random. The registration code does not know this.
 For every N it reports, per pair and averaged:
 
 * **ours**: Gumbel-top-k sampling by overlap x matchability, torch nearest-neighbour matching,
-  our batched RANSAC (confidence 0.999);
+  our batched RANSAC with the default settings (Open3D's overlap ranking, confidence 0.999);
+  **ours-fast** ranks by inlier correspondences; **ours-50k** also runs every one of the 50,000
+  iterations, as Predator's path does;
 * **Predator's path**: ``np.random.choice(..., replace=False, p=...)`` sampling and Open3D's
   ``registration_ransac_based_on_feature_matching`` with Predator's arguments (no mutual filter,
   5 cm, 3 points, both checkers, ``RANSACConvergenceCriteria(50000, 1000)``, which Open3D 0.20
@@ -174,6 +176,13 @@ def _predator_path(p: SimPair, n: int, rng: np.random.RandomState, cfg) -> np.nd
     return ransac_feature_matching_open3d(sp, tp, sd, td, cfg, mutual=False, seed=int(rng.randint(1 << 30))).transform
 
 
+OURS = {  # name -> RansacConfig overrides of the full path
+    "ours": {},  # the default: Open3D's overlap ranking, confidence 0.999
+    "ours-fast": {"score": "correspondences"},
+    "ours-50k": {"score": "correspondences", "confidence": 1.0},  # every iteration, like Predator's path
+}
+
+
 def main(argv: list[str] | None = None) -> dict:
     import dataclasses
 
@@ -196,81 +205,78 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"{len(pairs)} pairs from {source}; {np.mean([len(p.src.points) for p in pairs]):.0f} points per "
           f"fragment on average; overlap {min(p.overlap for p in pairs):.2f}..{max(p.overlap for p in pairs):.2f} "
           f"(built in {time.perf_counter() - t0:.1f} s)")
-    ours_cfg = RegistrationConfig(device=args.device, ransac=RansacConfig(max_iterations=args.iterations))
-    pred_cfg = RansacConfig(max_iterations=args.iterations, confidence=1.0)  # (50000, 1000) in Open3D 0.20
-    same_cfg = RansacConfig(max_iterations=args.iterations)
-    corr_cfg = RansacConfig(max_iterations=args.iterations, score="correspondences")
+    base = RansacConfig(max_iterations=args.iterations)
+    ours = {k: RegistrationConfig(device=args.device, ransac=dataclasses.replace(base, **v)) for k, v in OURS.items()}
+    pred_cfg = dataclasses.replace(base, confidence=1.0)  # RANSACConvergenceCriteria(50000, 1000) in Open3D 0.20
+    corr_cfg = dataclasses.replace(base, score="correspondences")
     legacy = np.random.RandomState(args.seed)
     rows = []
-    print("full path = sampling + matching + RANSAC; same corr. = RANSAC alone on identical correspondences "
-          f"(ours with Open3D's overlap ranking / with correspondence ranking, Open3D), confidence 0.999, "
-          f"{args.seeds} seeds per pair")
-    print(f"{'N':>5} | {'IR %':>5} | {'ours s/pair':>11} {'RR %':>5} | {'Predator s/pair':>15} {'RR %':>5} | {'speed-up':>8} |"
-          f" same corr.: {'ours s':>7} {'RR %':>5} {'ours-c s':>8} {'RR %':>5} {'Open3D s':>8} {'RR %':>5} "
-          f"{'O3D/ours':>8} {'O3D/ours-c':>10}")
+    names = list(OURS) + ["predator"]
+    print("Full path (sampling + matching + RANSAC), seconds per pair and registration recall:")
+    print(f"{'N':>5} {'IR %':>5} | " + " | ".join(f"{k:>9} s {'RR %':>5}" for k in names) + f" | {'speed-up ours':>13}")
+    same_lines = []
     for n in args.n_points:
-        acc = {k: [] for k in ("t_ours", "ok_ours", "t_pred", "ok_pred", "t_r_ours", "ok_r_ours", "t_r_corr", "ok_r_corr",
-                               "t_r_o3d", "ok_r_o3d", "ir")}
+        acc: dict[str, list] = {k: [] for k in ["ir"] + [f"t_{k}" for k in names] + [f"ok_{k}" for k in names]
+                                 + ["t_s_ov", "ok_s_ov", "t_s_c", "ok_s_c", "t_s_o3d", "ok_s_o3d"]}
         for k, p in enumerate(pairs):
-            s0 = time.perf_counter()
-            reg = register_features(p.src, p.tgt, n, ours_cfg, seed=pair_seed(args.seed, "bench", k, k + 1, n))
-            acc["t_ours"].append(time.perf_counter() - s0)
-            acc["ok_ours"].append(_success(reg.transform, p))
-            c = reg.correspondences
+            sd = pair_seed(args.seed, "bench", k, k + 1, n)
+            for name, cfg in ours.items():
+                s0 = time.perf_counter()
+                reg = register_features(p.src, p.tgt, n, cfg, seed=sd)
+                acc[f"t_{name}"].append(time.perf_counter() - s0)
+                acc[f"ok_{name}"].append(_success(reg.transform, p))
+                if name == "ours":
+                    first = reg
+            c = first.correspondences
             acc["ir"].append(inlier_ratio(p.src.points[c[:, 0]], p.tgt.points[c[:, 1]], p.transform))
-
             s0 = time.perf_counter()
             T_pred = _predator_path(p, n, legacy, pred_cfg)
-            acc["t_pred"].append(time.perf_counter() - s0)
-            acc["ok_pred"].append(_success(T_pred, p))
+            acc["t_predator"].append(time.perf_counter() - s0)
+            acc["ok_predator"].append(_success(T_pred, p))
 
-            # identical correspondences (ours' sampled points and matches) into both RANSACs
-            sp, tp = p.src.points[reg.src_idx], p.tgt.points[reg.tgt_idx]
-            loc = np.stack([np.searchsorted(reg.src_idx, c[:, 0]), np.searchsorted(reg.tgt_idx, c[:, 1])], 1)
+            # identical correspondences (the default path's samples and matches) into the RANSACs
+            sp, tp = p.src.points[first.src_idx], p.tgt.points[first.tgt_idx]
+            loc = np.stack([np.searchsorted(first.src_idx, c[:, 0]), np.searchsorted(first.tgt_idx, c[:, 1])], 1)
             for rep in range(args.seeds):
-                sd = 1000 * k + rep
-                s0 = time.perf_counter()
-                r1 = ransac(sp, tp, loc, same_cfg, seed=sd, device=args.device)
-                acc["t_r_ours"].append(time.perf_counter() - s0)
-                acc["ok_r_ours"].append(_success(r1.transform, p))
-                s0 = time.perf_counter()
-                r3 = ransac(sp, tp, loc, corr_cfg, seed=sd, device=args.device)
-                acc["t_r_corr"].append(time.perf_counter() - s0)
-                acc["ok_r_corr"].append(_success(r3.transform, p))
-                s0 = time.perf_counter()
-                r2 = ransac_open3d(sp, tp, loc, same_cfg, seed=sd)
-                acc["t_r_o3d"].append(time.perf_counter() - s0)
-                acc["ok_r_o3d"].append(_success(r2.transform, p))
+                rs = 1000 * k + rep
+                for key, fn in (("ov", lambda: ransac(sp, tp, loc, base, seed=rs, device=args.device)),
+                                ("c", lambda: ransac(sp, tp, loc, corr_cfg, seed=rs, device=args.device)),
+                                ("o3d", lambda: ransac_open3d(sp, tp, loc, base, seed=rs))):
+                    s0 = time.perf_counter()
+                    T = fn().transform
+                    acc[f"t_s_{key}"].append(time.perf_counter() - s0)
+                    acc[f"ok_s_{key}"].append(_success(T, p))
         m = {k: float(np.mean(v)) for k, v in acc.items()}
-        row = {
-            "n_points": n, "inlier_ratio": 100 * m["ir"],
-            "ours_s_per_pair": m["t_ours"], "ours_rr": 100 * m["ok_ours"],
-            "predator_s_per_pair": m["t_pred"], "predator_rr": 100 * m["ok_pred"],
-            "speedup": m["t_pred"] / m["t_ours"],
-            "same_corr_ours_s": m["t_r_ours"], "same_corr_ours_rr": 100 * m["ok_r_ours"],
-            "same_corr_ours_corrscore_s": m["t_r_corr"], "same_corr_ours_corrscore_rr": 100 * m["ok_r_corr"],
-            "same_corr_open3d_s": m["t_r_o3d"], "same_corr_open3d_rr": 100 * m["ok_r_o3d"],
-            "same_corr_ratio": m["t_r_o3d"] / m["t_r_ours"],
-            "same_corr_ratio_corrscore": m["t_r_o3d"] / m["t_r_corr"],
-        }
+        row = {"n_points": n, "inlier_ratio": 100 * m["ir"]}
+        for name in names:
+            row[f"{name}_s_per_pair"] = m[f"t_{name}"]
+            row[f"{name}_rr"] = 100 * m[f"ok_{name}"]
+        row["speedup_vs_predator"] = m["t_predator"] / m["t_ours"]
+        for key, label in (("ov", "same_ours"), ("c", "same_ours_fast"), ("o3d", "same_open3d")):
+            row[f"{label}_s"] = m[f"t_s_{key}"]
+            row[f"{label}_rr"] = 100 * m[f"ok_s_{key}"]
         rows.append(row)
-        print(f"{n:>5} | {row['inlier_ratio']:5.1f} | {row['ours_s_per_pair']:11.4f} {row['ours_rr']:5.1f} | "
-              f"{row['predator_s_per_pair']:15.4f} {row['predator_rr']:5.1f} | {row['speedup']:7.1f}x |"
-              f"             {row['same_corr_ours_s']:7.4f} {row['same_corr_ours_rr']:5.1f} "
-              f"{row['same_corr_ours_corrscore_s']:8.4f} {row['same_corr_ours_corrscore_rr']:5.1f} "
-              f"{row['same_corr_open3d_s']:8.4f} {row['same_corr_open3d_rr']:5.1f} {row['same_corr_ratio']:7.1f}x "
-              f"{row['same_corr_ratio_corrscore']:9.1f}x", flush=True)
-    tot_ours = sum(r["ours_s_per_pair"] for r in rows)
-    tot_pred = sum(r["predator_s_per_pair"] for r in rows)
+        print(f"{n:>5} {row['inlier_ratio']:5.1f} | "
+              + " | ".join(f"{row[f'{k}_s_per_pair']:11.4f} {row[f'{k}_rr']:5.1f}" for k in names)
+              + f" | {row['speedup_vs_predator']:12.1f}x", flush=True)
+        same_lines.append(
+            f"{n:>5} | {row['same_ours_s']:8.4f} {row['same_ours_rr']:5.1f} | {row['same_ours_fast_s']:8.4f} "
+            f"{row['same_ours_fast_rr']:5.1f} | {row['same_open3d_s']:8.4f} {row['same_open3d_rr']:5.1f} | "
+            f"{row['same_open3d_s'] / row['same_ours_s']:7.1f}x {row['same_open3d_s'] / row['same_ours_fast_s']:9.1f}x")
+    print(f"\nIdentical correspondences (the default path's), RANSAC alone, confidence 0.999, {args.seeds} seeds per pair:")
+    print(f"{'N':>5} | {'ours s':>8} {'RR %':>5} | {'fast s':>8} {'RR %':>5} | {'Open3D s':>8} {'RR %':>5} | "
+          f"{'O3D/ours':>8} {'O3D/fast':>9}")
+    print("\n".join(same_lines))
+    tot = {name: sum(r[f"{name}_s_per_pair"] for r in rows) for name in names}
     summary = {
         "pairs": len(pairs), "source": source, "n_points": args.n_points, "rows": rows,
-        "total_ours_s_per_pair": tot_ours, "total_predator_s_per_pair": tot_pred, "total_speedup": tot_pred / tot_ours,
-        "mean_rr_ours": float(np.mean([r["ours_rr"] for r in rows])),
-        "mean_rr_predator": float(np.mean([r["predator_rr"] for r in rows])),
-        "settings": {"ours": dataclasses.asdict(ours_cfg.ransac), "predator": dataclasses.asdict(pred_cfg)},
+        "total_s_per_pair": tot,
+        "mean_rr": {name: float(np.mean([r[f"{name}_rr"] for r in rows])) for name in names},
+        "settings": {name: dataclasses.asdict(c.ransac) for name, c in ours.items()} | {"predator": dataclasses.asdict(pred_cfg)},
     }
-    print(f"all N: ours {tot_ours:.3f} s/pair, Predator's path {tot_pred:.3f} s/pair -> {summary['total_speedup']:.1f}x faster; "
-          f"mean RR ours {summary['mean_rr_ours']:.1f} % vs Predator {summary['mean_rr_predator']:.1f} %")
+    print("\nAll N together: " + ", ".join(
+        f"{name} {tot[name]:.3f} s/pair (RR {summary['mean_rr'][name]:.1f} %, {tot['predator'] / tot[name]:.0f}x faster than Predator's path)"
+        for name in OURS) + f"; Predator's path {tot['predator']:.3f} s/pair (RR {summary['mean_rr']['predator']:.1f} %)")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))
     return summary
