@@ -226,7 +226,7 @@ def test_registration_settings_follow_the_profile_and_run_eval_overrides():
     from pcrcg.evaluation.run import configs_from
 
     rcfg, bcfg = configs_from(_compose([]))
-    assert rcfg.ransac.max_iterations == 10000 and rcfg.n_points == (1000, 250)
+    assert rcfg.ransac.max_iterations == 10000 and rcfg.n_points == (5000, 2500, 1000, 500, 250)
     rcfg, bcfg = configs_from(_compose([], profile="paper"))
     assert rcfg.ransac.max_iterations == 50000 and rcfg.n_points == (5000, 2500, 1000, 500, 250)
     assert rcfg.ransac.distance == 0.05 and rcfg.ransac.edge_length == 0.9 and rcfg.ransac.ransac_n == 3

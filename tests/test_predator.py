@@ -180,3 +180,20 @@ def test_predator_loss_on_perfect_and_random_outputs():
     skip = crit(perfect, ov, torch.full((100,), 8.0), points, 40, T, corr, matchability=False)
     assert "matchability_recall" not in skip and float(skip["matchability_loss"]) == 0.0
     assert float(skip["loss"]) == pytest.approx(float(good["loss"] - good["matchability_loss"]), abs=1e-6)
+
+
+@pytest.mark.parametrize("profile", ["tiny", "cpu", "paper"])
+def test_profiles_build_a_model(profile):
+    from pcrcg.benchmarks.model import profile_config
+
+    cfg = profile_config(profile)
+    m, t = cfg["model"], cfg["trainer"]
+    assert t["optim"] == {"lr": 0.005, "momentum": 0.98, "weight_decay": 1e-6, "lr_decay": 0.95,
+                          "encoder_lr_scale": 1.0}  # the paper's optimiser in every profile
+    assert t["batch_size"] == 1 and t["log_every_n_steps"] <= 50
+    if profile == "paper":  # Predator's published 3DMatch sizes
+        assert (m["voxel_size"], m["num_layers"], m["first_dim"], m["gnn_dim"], m["final_dim"]) == (
+            0.025, 4, 128, 256, 32)
+        assert t["max_epochs"] >= 30 and t["augment"]["rotation_range_deg"] == 360
+    net = build_predator(m, in_dim=1)
+    assert net.cfg.num_layers == m["num_layers"] and net.cfg.voxel_size == m["voxel_size"]
