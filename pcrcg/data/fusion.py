@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from pcrcg.geometry import invert
+from pcrcg.geometry import backproject, invert
 
 
 @dataclass
@@ -25,7 +25,7 @@ class FusionConfig:
     depth_max: float = 4.5  # metres; farther depth is ignored
     min_weight: float = 1.0  # a voxel needs this many observations to become a point
     fragment_voxel: float = 0.01  # the fused cloud is voxel-averaged to this size (0 = off)
-    block_count: int = 60000
+    block_count: int = 0  # hash-map capacity in 8^3-voxel blocks; 0 = estimated from the frames
 
 
 def fuse_frames(
@@ -43,13 +43,14 @@ def fuse_frames(
     if not (len(colors) == len(depths) == len(poses)) or len(poses) == 0:
         raise ValueError("fuse_frames needs as many colors, depths and poses, at least one")
     world_to_frag = invert(poses[0])
+    block_count = cfg.block_count or _estimate_blocks(depths, poses, world_to_frag, K, cfg)
     vbg = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
         attr_channels=((1), (1), (3)),
         voxel_size=cfg.tsdf_voxel,
         block_resolution=8,
-        block_count=cfg.block_count,
+        block_count=block_count,
     )
     Kt = o3c.Tensor(np.asarray(K, dtype=np.float64))
     for color, depth, pose in zip(colors, depths, poses):
@@ -72,3 +73,20 @@ def fuse_frames(
     pts = pcd.point.positions.numpy().astype(np.float32)
     cols = np.clip(pcd.point.colors.numpy().astype(np.float32), 0, 1) if "colors" in pcd.point else np.zeros_like(pts)
     return pts, cols
+
+
+def _estimate_blocks(depths, poses, world_to_frag, K, cfg: FusionConfig) -> int:
+    """Blocks the truncation band will touch: unique blocks of the back-projected points, x8 margin.
+
+    Allocating a fixed large hash map (60k blocks ~ 600 MB) cost more than fusing small fragments.
+    """
+    block = 8 * cfg.tsdf_voxel
+    keys = []
+    for depth, pose in zip(depths, poses):
+        d = np.where(depth <= cfg.depth_max, depth, 0)
+        pts, _ = backproject(d, K, stride=4)
+        if len(pts):
+            T = world_to_frag @ pose
+            keys.append(np.floor((pts @ T[:3, :3].T + T[:3, 3]) / block).astype(np.int64))
+    n = len(np.unique(np.concatenate(keys), axis=0)) if keys else 1
+    return int(max(1000, 8 * n))
