@@ -15,7 +15,7 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
     Columns: ``run_id, experiment_id, status, start_time, end_time, experiment`` and MLflow's
     ``metrics.*``, ``params.*``, ``tags.*``.
     """
-    import mlflow
+    from mlflow.entities import ViewType
 
     from pcrcg.tracking.store import client
 
@@ -27,12 +27,23 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
             ids[exp.experiment_id] = name
     if not ids:
         return pd.DataFrame(columns=[*RUN_COLUMNS, "experiment"])
-    previous = mlflow.get_tracking_uri()
-    mlflow.set_tracking_uri(uri)
-    try:
-        df = mlflow.search_runs(experiment_ids=list(ids), output_format="pandas", max_results=100000)
-    finally:
-        mlflow.set_tracking_uri(previous)
+    # an explicit client: mlflow.search_runs would need the process-global tracking URI, and
+    # setting that freezes it for everything else in the process (tests, sweeps in one process)
+    rows, token = [], None
+    while True:
+        page = c.search_runs(list(ids), run_view_type=ViewType.ACTIVE_ONLY, max_results=1000, page_token=token)
+        for r in page:
+            row = {"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
+                   "start_time": pd.to_datetime(r.info.start_time, unit="ms", utc=True),
+                   "end_time": pd.to_datetime(r.info.end_time, unit="ms", utc=True) if r.info.end_time else pd.NaT}
+            row.update({f"metrics.{k}": v for k, v in r.data.metrics.items()})
+            row.update({f"params.{k}": v for k, v in r.data.params.items()})
+            row.update({f"tags.{k}": v for k, v in r.data.tags.items()})
+            rows.append(row)
+        token = page.token
+        if not token:
+            break
+    df = pd.DataFrame(rows)
     if df.empty:
         return pd.DataFrame(columns=[*RUN_COLUMNS, "experiment"])
     df["experiment"] = df["experiment_id"].map(ids)
