@@ -350,8 +350,19 @@ def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = Non
         known = KNOWN_OPTIONS.get(group)
         if name is not None and known is not None and name not in known:
             raise ConfigError(f"{group}.name", name, _fmt(known))
+    _check_data_version(data.get("data"))
     _check_rules(top, data)
     return top
+
+
+def _check_data_version(node: Any) -> None:
+    """``data.version`` must be the data code's version (it keys runs to the data they saw)."""
+    if not isinstance(node, Mapping) or "version" not in node:
+        return
+    from pcrcg.data.materialise import GENERATOR_VERSION
+
+    if str(node["version"]) != str(GENERATOR_VERSION):
+        raise ConfigError("data.version", node["version"], f"{GENERATOR_VERSION} (the data code in this checkout)")
 
 
 def _check_missing(data: Mapping[str, Any], prefix: str = "") -> None:

@@ -78,6 +78,7 @@ def test_defaults_compose_and_validate(conf):
         (["projection=explicit", "projection.name=orthographic"], "projection.name", "implicit"),
         (["data.name=kitti"], "data.name", "synthmatch"),
         (["encoder2d.name=resnet"], "encoder2d.name", "imagenet"),
+        (["data.version=1"], "data.version", "the data code in this checkout"),
         # rules across groups
         (["features=deep", "projection=none"], "projection", "implicit or explicit"),
     ],

@@ -44,7 +44,7 @@ from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
 from pcrcg.errors import ConfigError, DataError
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 SOURCES = ("synthmatch", "redkitchen", "threedmatch")
 
 
@@ -75,6 +75,10 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
     name = data_cfg.get("name")
     if name not in SOURCES:
         raise ConfigError("data.name", name, f"one of {SOURCES}")
+    if "version" in data_cfg and str(data_cfg["version"]) != str(GENERATOR_VERSION):
+        raise ConfigError("data.version", data_cfg["version"],
+                          f"{GENERATOR_VERSION} (the data code in this checkout; the key is part of every run's "
+                          "config hash so that runs on older data sets are not taken for finished ones)")
     root = Path(str(data_cfg["root"]))
     params = {"source": name, "version": GENERATOR_VERSION, "seed": seed,
               **{k: v for k, v in data_cfg.items() if k not in ("root", "workers")}}

@@ -1,7 +1,9 @@
 """Procedural indoor rooms made of textured rectangles ("panels").
 
 A room is a box (floor, ceiling, four walls) holding furniture-like solids (wall units, tables
-with legs, low boxes, clutter on tables) and flat textured posters and rugs a few millimetres in
+with legs, low boxes, clutter on tables, columns and pipes by the walls, objects on the floor; many
+turned off the room's axes so that low-overlap pairs are not made of interchangeable right angles)
+and flat textured posters and rugs a few millimetres in
 front of walls and floor: surfaces where geometry is ambiguous and color is not.
 
 Coordinates: metres, z up, the room spans [0, W] x [0, D] x [0, H].
@@ -68,6 +70,38 @@ def _box_panels(lo: np.ndarray, hi: np.ndarray, tex: Texture, kind: str, skip_bo
     if not skip_bottom:
         faces.append(Panel(np.array([x0, y1, z0]), X * dx, -Y * dy, tex, kind))
     return faces
+
+
+def _yawed_box_panels(center: np.ndarray, size: np.ndarray, z0: float, yaw: float, tex: Texture,
+                      kind: str) -> tuple[list[Panel], np.ndarray, np.ndarray]:
+    """A box of ``size`` (w, d, h) standing at height ``z0``, turned by ``yaw`` (rad) about z around
+    ``center`` (x, y). Returns its five outward faces (top and sides) and its axis-aligned bounds."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    u = np.array([c, s, 0.0]) * size[0]
+    v = np.array([-s, c, 0.0]) * size[1]
+    Z = np.array([0.0, 0.0, size[2]])
+    o = np.array([center[0], center[1], z0]) - 0.5 * (u + v)
+    panels = [
+        Panel(o + Z, u, v, tex, kind),  # top, normal +z
+        Panel(o, u, Z, tex, kind),  # normal -v
+        Panel(o + u + v, -u, Z, tex, kind),  # normal +v
+        Panel(o + v, -v, Z, tex, kind),  # normal -u
+        Panel(o + u, v, Z, tex, kind),  # normal +u
+    ]
+    corners = np.stack([o, o + u, o + v, o + u + v])
+    lo = np.array([*corners[:, :2].min(0), z0])
+    hi = np.array([*corners[:, :2].max(0), z0 + size[2]])
+    return panels, lo, hi
+
+
+def _prism_panels(center: np.ndarray, radius: float, z0: float, z1: float, n_sides: int, phase: float,
+                  tex: Texture, kind: str) -> list[Panel]:
+    """The side faces of a regular ``n_sides``-gon prism (a column, a pipe) from ``z0`` to ``z1``."""
+    ang = phase + 2 * np.pi * np.arange(n_sides + 1) / n_sides
+    ring = np.stack([center[0] + radius * np.cos(ang), center[1] + radius * np.sin(ang), np.full(n_sides + 1, z0)], 1)
+    up = np.array([0.0, 0.0, z1 - z0])
+    # counter-clockwise ring seen from above: (edge, up) has an outward normal
+    return [Panel(ring[k], ring[k + 1] - ring[k], up, tex, kind) for k in range(n_sides)]
 
 
 def _overlaps(lo, hi, boxes, margin=0.05) -> bool:
@@ -140,6 +174,17 @@ def make_room(rng: np.random.Generator) -> Room:
                     py = rng.uniform(y0, y0 + d - s[1])
                     room.panels += _box_panels(np.array([px, py, ht]), np.array([px + s[0], py + s[1], ht + s[2]]),
                                                random_texture(rng, "poster" if rng.random() < 0.4 else "furniture"), "furniture")
+            elif rng.random() < 0.6:  # low solid turned off the room's axes (armchair, crate, bed)
+                h = rng.uniform(0.35, 1.0)
+                yaw = rng.uniform(-0.7, 0.7)
+                faces, blo, bhi = _yawed_box_panels(np.array([x0 + w / 2, y0 + d / 2]), np.array([w, d, h]) * 0.8,
+                                                    0.0, yaw, tex, "furniture")
+                room.panels += faces
+                if rng.random() < 0.5:  # something smaller on it, turned again
+                    s2 = rng.uniform(0.15, 0.4, size=3)
+                    faces2, _, _ = _yawed_box_panels(np.array([x0 + w / 2, y0 + d / 2]) + rng.uniform(-0.1, 0.1, 2), s2, h,
+                                                     yaw + rng.uniform(-0.8, 0.8), random_texture(rng, "furniture"), "furniture")
+                    room.panels += faces2
             else:  # low solid
                 h = rng.uniform(0.35, 1.0)
                 room.panels += _box_panels(np.array([x0, y0, 0]), np.array([x0 + w, y0 + d, h]), tex, "furniture")
@@ -148,6 +193,33 @@ def make_room(rng: np.random.Generator) -> Room:
                     room.panels += _box_panels(np.array([x0, y0, h]), np.array([x0 + w, y0 + min(d, 0.25), min(h + h2, 1.1)]),
                                                random_texture(rng, "furniture"), "furniture")
             boxes.append((lo2, hi2 + np.array([0, 0, 1.1])))
+            break
+
+    # things that break the room's symmetry: columns and pipes by the walls, objects on the floor at
+    # random angles (the camera walks >= 0.8 m from the walls and looks across the room)
+    for _ in range(int(rng.integers(1, 4))):
+        wall = int(rng.integers(0, 4))
+        r = rng.uniform(0.06, 0.22)
+        off = rng.uniform(r + 0.02, 0.6)
+        along = rng.uniform(0.4, (W if wall in (0, 1) else D) - 0.4)
+        c = {0: (along, off), 1: (along, D - off), 2: (off, along), 3: (W - off, along)}[wall]
+        c = np.asarray(c)
+        if _overlaps(c - r, c + r, boxes, margin=0.02):
+            continue
+        top = H if rng.random() < 0.6 else rng.uniform(0.8, 1.9)
+        n_sides = int(rng.choice([4, 6, 8, 12]))
+        room.panels += _prism_panels(c, r, 0.0, top, n_sides, rng.uniform(0, np.pi), random_texture(rng, "furniture"), "furniture")
+        boxes.append((np.array([c[0] - r, c[1] - r, 0]), np.array([c[0] + r, c[1] + r, top])))
+    for _ in range(int(rng.integers(3, 8))):
+        for _try in range(10):
+            size = np.array([rng.uniform(0.15, 0.6), rng.uniform(0.15, 0.6), rng.uniform(0.1, 0.7)])
+            c = np.array([rng.uniform(0.4, W - 0.4), rng.uniform(0.4, D - 0.4)])
+            faces, blo, bhi = _yawed_box_panels(c, size, 0.0, rng.uniform(0, np.pi / 2),
+                                                random_texture(rng, "poster" if rng.random() < 0.3 else "furniture"), "furniture")
+            if _overlaps(blo, bhi, boxes, margin=0.1):
+                continue
+            room.panels += faces
+            boxes.append((blo, bhi))
             break
 
     # posters on the walls, rugs on the floor: flat, 3 mm off the surface

@@ -1,0 +1,566 @@
+"""The 2D pretraining run: data -> view pairs -> contrastive training -> held-out matching -> checkpoint.
+
+:func:`pretrain` ``(cfg, base_dir=None, log=print, progress=None) -> dict`` takes the composed
+``conf/pretrain2d.yaml`` (a DictConfig or plain dict) and returns the result that
+``python -m pcrcg.pretrain2d`` prints as its last line::
+
+    {"checkpoint": PATH, "loss_start": ..., "loss_end": ..., "match_acc_scratch": ...,
+     "match_acc_pretrained": ..., "eval_loss_scratch": ..., "eval_loss_pretrained": ...,
+     "steps": ..., "seconds": ..., "pairs": <training pairs>, "eval_pairs": ..., "eval_points": ...,
+     "pixel_threshold": ..., "image_size": [H, W], "arch": ..., "init": ..., "eval_split": ...,
+     "config_hash": ..., "reused": false, "run_id": ... | null}
+
+* ``match_acc_scratch`` is the encoder *before* training (the seeded random init for
+  ``encoder2d=scratch``; ``init`` says which), ``match_acc_pretrained`` after; both on the same
+  held-out pixels (drawn once with the seed).
+* ``loss_start`` / ``loss_end``: mean training loss over the first / last ``train.loss_window`` steps.
+* An existing ``out`` checkpoint with the same config hash is reused (``reused: true``) unless
+  ``force=true``.
+
+Every setting is checked before the data is touched (:func:`check_settings`, ConfigError naming it);
+a missing data root with ``prepare=false`` or missing frames are DataErrors naming the file.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from pcrcg.data.layout import Layout
+from pcrcg.errors import ConfigError, DataError
+from pcrcg.pretrain2d.frames import FrameSequence, list_sequences, load_sequence
+from pcrcg.vision.encoders import ARCHS, INITS, ResUNet, build_encoder, save_pri3d_checkpoint
+from pcrcg.vision.pretrain import (
+    PixelMatches,
+    color_jitter,
+    gather_pixels,
+    info_nce,
+    match_accuracy,
+    pixel_correspondences,
+    relative_pose,
+    sample_matches,
+    select_view_pairs,
+)
+
+EXPERIMENT = "pretrain2d"
+HASH_EXCLUDE = ("hydra", "logger", "paths", "runtime", "out", "force", "data.workers", "train.num_threads")
+OPTIMIZERS = ("adam", "sgd")
+SCHEDULES = ("cosine", "constant")
+HOLDOUT = "holdout"
+
+
+# --------------------------------------------------------------------------- settings
+
+
+def _get(node: Any, dotted: str, default: Any = None) -> Any:
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return default
+        node = node[part]
+    return node
+
+
+def _int(cfg: Mapping, key: str, low: int, allow_none: bool = False) -> int | None:
+    v = _get(cfg, key)
+    if v is None and allow_none:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise ConfigError(key, v, f"an integer >= {low}" + (" or null" if allow_none else ""))
+    return int(v)
+
+
+def _num(cfg: Mapping, key: str, low: float, high: float = math.inf, low_open: bool = False) -> float:
+    v = _get(cfg, key)
+    ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+    ok = ok and (v > low if low_open else v >= low) and v <= high
+    if not ok:
+        lo = f"> {low}" if low_open else f">= {low}"
+        raise ConfigError(key, v, f"a number {lo}" + (f" and <= {high}" if math.isfinite(high) else ""))
+    return float(v)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The checked values of ``conf/pretrain2d.yaml`` that the run uses."""
+
+    seed: int
+    image_size: tuple[int, int] | None
+    min_gap: int
+    max_gap: int
+    min_overlap: float
+    max_overlap: float
+    overlap_stride: int
+    frame_stride: int
+    max_per_scene: int | None
+    depth_tolerance: float
+    depth_tolerance_rel: float
+    train_splits: tuple[str, ...]
+    steps: int
+    batch_pairs: int
+    points: int
+    min_points: int
+    temperature: float
+    symmetric: bool
+    optimizer: str
+    lr: float
+    weight_decay: float
+    lr_schedule: str
+    warmup_steps: int
+    color_jitter: float
+    loss_window: int
+    num_threads: int | None
+    eval_split: str
+    holdout_fraction: float
+    eval_pairs: int
+    eval_points: int
+    pixel_threshold: float
+
+
+def check_settings(cfg: Mapping[str, Any]) -> Settings:
+    """Check every setting of the pretraining config (plain dict); ConfigError names the first bad one."""
+    size = _get(cfg, "image_size")
+    if size is not None:
+        if (not isinstance(size, (list, tuple)) or len(size) != 2
+                or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 32 for s in size)):
+            raise ConfigError("image_size", size, "null or [H, W] with integers >= 32")
+        size = (int(size[0]), int(size[1]))
+    enc = _get(cfg, "encoder2d") or {}
+    if enc.get("name", "scratch") not in INITS:
+        raise ConfigError("encoder2d.name", enc.get("name"), " | ".join(INITS))
+    if enc.get("arch", "resnet18") not in ARCHS:
+        raise ConfigError("encoder2d.arch", enc.get("arch"), " | ".join(ARCHS))
+    _int(cfg, "encoder2d.out_dim", 1)
+    min_ov = _num(cfg, "pairs.min_overlap", 0.0, 1.0)
+    max_ov = _num(cfg, "pairs.max_overlap", 0.0, 1.0)
+    if max_ov < min_ov:
+        raise ConfigError("pairs.max_overlap", max_ov, f"a number >= pairs.min_overlap ({min_ov})")
+    min_gap = _int(cfg, "pairs.min_frame_gap", 1)
+    max_gap = _int(cfg, "pairs.max_frame_gap", 1)
+    if max_gap < min_gap:
+        raise ConfigError("pairs.max_frame_gap", max_gap, f"an integer >= pairs.min_frame_gap ({min_gap})")
+    splits = _get(cfg, "train.splits")
+    if isinstance(splits, str):
+        splits = [splits]
+    if not splits or not all(isinstance(s, str) and s for s in splits):
+        raise ConfigError("train.splits", splits, "a non-empty list of split names (train, val, test)")
+    opt = _get(cfg, "train.optimizer")
+    if opt not in OPTIMIZERS:
+        raise ConfigError("train.optimizer", opt, " | ".join(OPTIMIZERS))
+    sched = _get(cfg, "train.lr_schedule")
+    if sched not in SCHEDULES:
+        raise ConfigError("train.lr_schedule", sched, " | ".join(SCHEDULES))
+    eval_split = _get(cfg, "eval.split")
+    if not isinstance(eval_split, str) or not eval_split:
+        raise ConfigError("eval.split", eval_split, f"a split name (val, test) or {HOLDOUT}")
+    for key in ("train.symmetric",):
+        if not isinstance(_get(cfg, key), bool):
+            raise ConfigError(key, _get(cfg, key), "true or false")
+    seed = _get(cfg, "seed")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError("seed", seed, "an integer")
+    return Settings(
+        seed=int(seed), image_size=size, min_gap=min_gap, max_gap=max_gap, min_overlap=min_ov, max_overlap=max_ov,
+        overlap_stride=_int(cfg, "pairs.overlap_stride", 1), frame_stride=_int(cfg, "pairs.frame_stride", 1),
+        max_per_scene=_int(cfg, "pairs.max_per_scene", 1, allow_none=True),
+        depth_tolerance=_num(cfg, "correspondence.depth_tolerance", 0.0, low_open=True),
+        depth_tolerance_rel=_num(cfg, "correspondence.depth_tolerance_rel", 0.0),
+        train_splits=tuple(splits), steps=_int(cfg, "train.steps", 0), batch_pairs=_int(cfg, "train.batch_pairs", 1),
+        points=_int(cfg, "train.points", 2), min_points=_int(cfg, "train.min_points", 2),
+        temperature=_num(cfg, "train.temperature", 0.0, low_open=True), symmetric=bool(_get(cfg, "train.symmetric")),
+        optimizer=opt, lr=_num(cfg, "train.lr", 0.0, low_open=True), weight_decay=_num(cfg, "train.weight_decay", 0.0),
+        lr_schedule=sched, warmup_steps=_int(cfg, "train.warmup_steps", 0),
+        color_jitter=_num(cfg, "train.color_jitter", 0.0, 0.9), loss_window=_int(cfg, "train.loss_window", 1),
+        num_threads=_int(cfg, "train.num_threads", 1, allow_none=True), eval_split=eval_split,
+        holdout_fraction=_num(cfg, "eval.holdout_fraction", 0.0, 0.9, low_open=True),
+        eval_pairs=_int(cfg, "eval.pairs", 1), eval_points=_int(cfg, "eval.points", 1),
+        pixel_threshold=_num(cfg, "eval.pixel_threshold", 0.0, low_open=True),
+    )
+
+
+# --------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class ViewPair:
+    """Frames ``a`` and ``b`` (indices into sequence ``seq``'s frames) and their two-way overlap."""
+
+    seq: int
+    a: int
+    b: int
+    overlap: float
+
+
+def load_split_sequences(layout: Layout, splits: Sequence[str], s: Settings, log: Callable[[str], None],
+                         setting: str) -> list[FrameSequence]:
+    """All RGB-D sequences of the scenes of ``splits`` (every ``frame_stride``-th frame), resized."""
+    out = []
+    for split in splits:
+        f = layout.split_file(split)
+        if not f.is_file():
+            raise DataError(f, f"split file of {setting}={split!r} is missing")
+        for scene in layout.scenes(split):
+            for seq, ids in list_sequences(layout, scene):
+                seqf = load_sequence(layout, scene, seq, ids[:: s.frame_stride], s.image_size)
+                if seqf.skipped:
+                    log(f"[pretrain2d] {scene}/{seq}: skipped {seqf.skipped} frames with an unusable pose")
+                out.append(seqf)
+    return out
+
+
+def scene_pairs(seqs: Sequence[FrameSequence], s: Settings, rng: np.random.Generator,
+                max_per_scene: int | None) -> list[ViewPair]:
+    """View pairs of every sequence (:func:`select_view_pairs`), at most ``max_per_scene`` per scene."""
+    by_scene: dict[str, list[ViewPair]] = {}
+    for k, sq in enumerate(seqs):
+        found = select_view_pairs(list(sq.depths), sq.poses, sq.K, s.min_gap, s.max_gap, s.min_overlap,
+                                  s.max_overlap, s.overlap_stride, s.depth_tolerance, s.depth_tolerance_rel)
+        by_scene.setdefault(sq.scene, []).extend(ViewPair(k, a, b, ov) for a, b, ov in found)
+    out = []
+    for scene in sorted(by_scene):
+        pairs = by_scene[scene]
+        if max_per_scene is not None and len(pairs) > max_per_scene:
+            idx = np.sort(rng.choice(len(pairs), max_per_scene, replace=False))
+            pairs = [pairs[i] for i in idx]
+        out.extend(pairs)
+    return out
+
+
+def pair_matches(sq: FrameSequence, a: int, b: int, s: Settings) -> PixelMatches:
+    """Visible correspondences from frame a into frame b of a sequence."""
+    return pixel_correspondences(sq.depths[a], sq.K, sq.depths[b], sq.K, relative_pose(sq.poses[a], sq.poses[b]),
+                                 s.depth_tolerance, s.depth_tolerance_rel)
+
+
+@dataclass
+class EvalItem:
+    """One held-out pair: fixed query pixels and their true target positions."""
+
+    seq: int
+    a: int
+    b: int
+    matches: PixelMatches
+
+
+def eval_items(seqs: Sequence[FrameSequence], pairs: Sequence[ViewPair], s: Settings,
+               rng: np.random.Generator) -> list[EvalItem]:
+    """``eval.pairs`` held-out pairs with ``eval.points`` visible source pixels each (drawn once)."""
+    if len(pairs) > s.eval_pairs:
+        idx = np.sort(rng.choice(len(pairs), s.eval_pairs, replace=False))
+        pairs = [pairs[i] for i in idx]
+    out = []
+    for p in pairs:
+        m = pair_matches(seqs[p.seq], p.a, p.b, s)
+        if len(m) >= 1:
+            out.append(EvalItem(p.seq, p.a, p.b, sample_matches(m, s.eval_points, rng)))
+    return out
+
+
+def to_images(colors: Sequence[np.ndarray], device: torch.device) -> torch.Tensor:
+    """uint8 (H, W, 3) images -> (B, 3, H, W) float in [0, 1] on ``device``."""
+    x = torch.from_numpy(np.ascontiguousarray(np.stack(colors))).to(device)
+    return x.permute(0, 3, 1, 2).float().div_(255.0)
+
+
+@torch.no_grad()
+def evaluate(model: ResUNet, seqs: Sequence[FrameSequence], items: Sequence[EvalItem], s: Settings,
+             device: torch.device) -> dict[str, float]:
+    """Held-out nearest-neighbour matching accuracy and InfoNCE of ``model`` (eval mode)."""
+    was_training = model.training
+    model.eval()
+    accs, losses, n_hits, n_all = [], [], 0, 0
+    try:
+        for it in items:
+            sq = seqs[it.seq]
+            feats = model(to_images([sq.colors[it.a], sq.colors[it.b]], device))
+            acc, hits = match_accuracy(feats[0], feats[1], it.matches.src_pix, it.matches.tgt_uv,
+                                       sq.depths[it.b] > 0, s.pixel_threshold)
+            accs.append(acc)
+            n_hits += int(hits.sum())
+            n_all += len(hits)
+            if len(it.matches) >= 2:
+                losses.append(float(info_nce(gather_pixels(feats[0], it.matches.src_pix),
+                                             gather_pixels(feats[1], it.matches.tgt_pix), s.temperature,
+                                             s.symmetric)))
+    finally:
+        model.train(was_training)
+    return {"match_acc": n_hits / max(n_all, 1), "match_acc_pair_mean": float(np.mean(accs)) if accs else float("nan"),
+            "loss": float(np.mean(losses)) if losses else float("nan")}
+
+
+def lr_factor(step: int, s: Settings) -> float:
+    """Learning-rate multiplier at ``step``: linear warm-up, then constant or cosine down to 0.1."""
+    if s.warmup_steps and step < s.warmup_steps:
+        return (step + 1) / s.warmup_steps
+    if s.lr_schedule == "constant" or s.steps <= s.warmup_steps:
+        return 1.0
+    t = (step - s.warmup_steps) / max(1, s.steps - s.warmup_steps)
+    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
+
+
+def train_step(model: ResUNet, opt: torch.optim.Optimizer, seqs: Sequence[FrameSequence], batch: Sequence[ViewPair],
+               s: Settings, rng: np.random.Generator, gen: torch.Generator, device: torch.device) -> float | None:
+    """One optimiser step on ``batch`` (random direction per pair); returns the loss (None: no usable pair)."""
+    colors, matches = [], []
+    for p in batch:
+        sq = seqs[p.seq]
+        a, b = (p.a, p.b) if rng.random() < 0.5 else (p.b, p.a)
+        m = sample_matches(pair_matches(sq, a, b, s), s.points, rng)
+        if len(m) < s.min_points:
+            continue
+        colors += [sq.colors[a], sq.colors[b]]
+        matches.append(m)
+    if not matches:
+        return None
+    x = color_jitter(to_images(colors, device), s.color_jitter, gen)
+    feats = model(x)
+    loss = torch.stack([info_nce(gather_pixels(feats[2 * k], m.src_pix), gather_pixels(feats[2 * k + 1], m.tgt_pix),
+                                 s.temperature, s.symmetric) for k, m in enumerate(matches)]).mean()
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
+
+
+def make_optimizer(model: ResUNet, s: Settings) -> torch.optim.Optimizer:
+    params = [p for p in model.parameters() if p.requires_grad]
+    if s.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=s.lr, momentum=0.9, weight_decay=s.weight_decay)
+    return torch.optim.Adam(params, lr=s.lr, weight_decay=s.weight_decay)
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def _plain(cfg: Any) -> dict[str, Any]:
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig):
+        data = OmegaConf.to_container(cfg, resolve=True)
+    else:
+        import copy
+
+        data = copy.deepcopy(dict(cfg))
+    assert isinstance(data, dict)
+    data.pop("hydra", None)
+    return data
+
+
+def _abs(path: Any, base: Path) -> Path:
+    p = Path(str(path)).expanduser()
+    return p if p.is_absolute() else base / p
+
+
+def default_checkpoint(cfg: Mapping[str, Any], base: Path) -> Path:
+    """``<paths.checkpoints>/pretrain2d/<data.name>-<profile.name>/pri3d_<arch>.pth`` (or ``out``)."""
+    if cfg.get("out"):
+        return _abs(cfg["out"], base)
+    root = _abs(_get(cfg, "paths.checkpoints", "checkpoints"), base)
+    tag = f"{_get(cfg, 'data.name', 'data')}-{_get(cfg, 'profile.name', 'default')}"
+    return root / "pretrain2d" / tag / f"pri3d_{_get(cfg, 'encoder2d.arch', 'resnet18')}.pth"
+
+
+def _resolve_device(requested: Any) -> torch.device:
+    if requested in (None, "", "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(str(requested))
+
+
+def _reusable(path: Path, h: str) -> dict[str, Any] | None:
+    if not path.is_file():
+        return None
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 - an unreadable file is simply retrained
+        return None
+    meta = ck.get("meta") if isinstance(ck, Mapping) else None
+    if isinstance(meta, Mapping) and meta.get("config_hash") == h and isinstance(meta.get("result"), Mapping):
+        return dict(meta["result"])
+    return None
+
+
+def _window_mean(values: Sequence[float], window: int, last: bool) -> float:
+    if not values:
+        return float("nan")
+    w = max(1, min(window, len(values)))
+    return float(np.mean(values[-w:] if last else values[:w]))
+
+
+def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], None] = print,
+             progress: bool | None = None) -> dict[str, Any]:
+    """Run the 2D pretraining described by ``cfg`` (``conf/pretrain2d.yaml``); see the module docstring."""
+    from pcrcg.tracking.hashing import config_hash, flatten
+
+    t0 = time.time()
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    data = _plain(cfg)
+    s = check_settings(data)
+    h = config_hash(data, HASH_EXCLUDE)
+    out = default_checkpoint(data, base)
+    if not data.get("force", False):
+        prev = _reusable(out, h)
+        if prev is not None:
+            log(f"[pretrain2d] {out} holds this config's checkpoint (hash {h}); reusing it (force=true retrains)")
+            return {**prev, "checkpoint": str(out), "reused": True}
+    if s.num_threads:
+        torch.set_num_threads(s.num_threads)
+    show = bool(_get(data, "runtime.progress", True)) if progress is None else progress
+    device = _resolve_device(_get(data, "runtime.device"))
+
+    # ---- data
+    data_cfg = dict(data["data"])
+    data_cfg["root"] = str(_abs(data_cfg.get("root", ""), base))
+    if data.get("prepare", True):
+        from pcrcg.data.materialise import prepare_dataset
+
+        root = Path(prepare_dataset(data_cfg, seed=int(data.get("data_seed", 0)), log=log))
+    else:
+        root = Path(data_cfg["root"])
+        if not root.is_dir():
+            raise DataError(root, "data root (data.root) does not exist (prepare=false uses it as it is)")
+    layout = Layout(root)
+    rng = np.random.default_rng(s.seed)
+    train_seqs = load_split_sequences(layout, s.train_splits, s, log, "train.splits")
+    if not train_seqs:
+        raise ConfigError("train.splits", list(s.train_splits),
+                          f"splits with scenes in {layout.root / 'splits'} (these have none)")
+    eval_split = s.eval_split
+    eval_scenes = [] if eval_split == HOLDOUT else (
+        layout.scenes(eval_split) if layout.split_file(eval_split).is_file() else [])
+    if eval_split != HOLDOUT and not eval_scenes:
+        log(f"[pretrain2d] split {eval_split!r} has no scenes: evaluating on held-out frames instead "
+            f"(the last {s.holdout_fraction:.0%} of every training sequence)")
+        eval_split = HOLDOUT
+    if eval_split == HOLDOUT:
+        eval_seqs = []
+        for k, sq in enumerate(train_seqs):
+            cut = len(sq) - max(2, int(round(len(sq) * s.holdout_fraction)))
+            if cut < 2:
+                raise DataError(layout.rgbd_dir(sq.scene) / sq.seq,
+                                f"only {len(sq)} frames: too few to hold some out (eval.holdout_fraction)")
+            eval_seqs.append(sq.subset(range(cut, len(sq))))
+            train_seqs[k] = sq.subset(range(cut))
+    else:
+        eval_seqs = load_split_sequences(layout, [eval_split], s, log, "eval.split")
+    pairs = scene_pairs(train_seqs, s, rng, s.max_per_scene)
+    if not pairs:
+        raise ConfigError("pairs.min_overlap", s.min_overlap,
+                          f"bounds that some training frame pairs meet (none of {sum(len(q) for q in train_seqs)} "
+                          f"frames in {root} pair up with overlap in [{s.min_overlap}, {s.max_overlap}] and "
+                          f"frame gap in [{s.min_gap}, {s.max_gap}])")
+    eval_pairs_all = scene_pairs(eval_seqs, s, np.random.default_rng(s.seed + 1), None)
+    items = eval_items(eval_seqs, eval_pairs_all, s, np.random.default_rng(s.seed + 2))
+    if not items:
+        raise ConfigError("eval.split", s.eval_split, f"a split (or {HOLDOUT}) whose frames pair up (no held-out "
+                                                      f"view pairs found in {root})")
+    n_frames = sum(len(q) for q in train_seqs)
+    log(f"[pretrain2d] {root}: {len(pairs)} training pairs from {n_frames} frames of {len(train_seqs)} sequences; "
+        f"{len(items)} held-out pairs ({eval_split}); images {s.image_size or 'native'}; device {device}")
+
+    # ---- model (seeded init) and the tracked run
+    torch.manual_seed(s.seed)
+    enc_cfg = dict(data.get("encoder2d") or {})
+    model = build_encoder(enc_cfg).to(device)
+    tracker, run_id = _start_tracking(data, h, base, out, log)
+    try:
+        result = _train_and_evaluate(model, train_seqs, eval_seqs, pairs, items, s, device, show, log, tracker, run_id)
+        result.update({
+            "checkpoint": str(out), "pairs": len(pairs), "eval_pairs": len(items),
+            "eval_points": int(sum(len(it.matches) for it in items)), "pixel_threshold": s.pixel_threshold,
+            "image_size": list(s.image_size) if s.image_size else None, "arch": model.arch,
+            "init": str(enc_cfg.get("name", "scratch")), "eval_split": eval_split, "config_hash": h,
+            "reused": False, "run_id": run_id,
+        })
+        result["seconds"] = round(time.time() - t0, 1)
+        meta = {"config_hash": h, "profile": _get(data, "profile.name"), "data_root": str(root),
+                "image_size": result["image_size"], "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "config": flatten({k: v for k, v in data.items() if k not in ("hydra",)}), "result": dict(result)}
+        from pcrcg.tracking.git import git_info
+
+        meta["git_sha"] = git_info()[0]
+        save_pri3d_checkpoint(model, out, meta)
+        if tracker is not None:
+            _finish_tracking(tracker, run_id, result, out)
+    except BaseException as e:
+        if tracker is not None:
+            tracker.fail(run_id, e)
+        raise
+    return result
+
+
+def _train_and_evaluate(model: ResUNet, train_seqs, eval_seqs, pairs, items, s: Settings, device, show: bool,
+                        log, tracker, run_id) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    before = evaluate(model, eval_seqs, items, s, device)
+    log(f"[pretrain2d] before training: held-out match accuracy {before['match_acc']:.3f}, "
+        f"InfoNCE {before['loss']:.3f}")
+    model.train()
+    opt = make_optimizer(model, s)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, s))
+    rng = np.random.default_rng(s.seed + 3)
+    gen = torch.Generator().manual_seed(s.seed + 4)
+    losses: list[float] = []
+    skipped = 0
+    bar = tqdm(range(s.steps), desc="pretrain2d", disable=not show, dynamic_ncols=True, mininterval=1.0)
+    for step in bar:
+        idx = rng.choice(len(pairs), s.batch_pairs, replace=len(pairs) < s.batch_pairs)
+        loss = train_step(model, opt, train_seqs, [pairs[i] for i in idx], s, rng, gen, device)
+        sched.step()
+        if loss is None:
+            skipped += 1
+            continue
+        losses.append(loss)
+        if step % 10 == 0 or step == s.steps - 1:
+            bar.set_postfix(loss=f"{np.mean(losses[-10:]):.3f}")
+    bar.close()
+    after = evaluate(model, eval_seqs, items, s, device)
+    log(f"[pretrain2d] after {s.steps} steps: held-out match accuracy {after['match_acc']:.3f} "
+        f"(before {before['match_acc']:.3f}), InfoNCE {after['loss']:.3f} (before {before['loss']:.3f})")
+    if tracker is not None and losses:
+        tracker.log_history(run_id, {"train/loss": losses})
+    return {"loss_start": _window_mean(losses, s.loss_window, False), "loss_end": _window_mean(losses, s.loss_window, True),
+            "match_acc_scratch": before["match_acc"], "match_acc_pretrained": after["match_acc"],
+            "eval_loss_scratch": before["loss"], "eval_loss_pretrained": after["loss"],
+            "steps": s.steps, "skipped_steps": skipped}
+
+
+# --------------------------------------------------------------------------- tracking
+
+
+def _start_tracking(data: Mapping[str, Any], h: str, base: Path, out: Path, log) -> tuple[Any, str | None]:
+    if _get(data, "logger.name", "none") != "mlflow":
+        return None, None
+    from pcrcg.tracking.git import git_info
+    from pcrcg.tracking.hashing import flatten
+    from pcrcg.tracking.runs import TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE, RunTracker
+    from pcrcg.tracking.store import resolve_tracking_uri
+
+    uri = resolve_tracking_uri(_get(data, "logger.tracking_uri"), base)
+    tracker = RunTracker(uri, EXPERIMENT)
+    sha, dirty = git_info()
+    profile = str(_get(data, "profile.name", "?"))
+    arch = str(_get(data, "encoder2d.arch", "?"))
+    run_id = tracker.start(f"pri3d_{arch}-{profile}", {
+        TAG_EXPERIMENT: EXPERIMENT, TAG_HASH: h, TAG_GIT: sha, "git_dirty": str(dirty).lower(), TAG_PROFILE: profile,
+        "checkpoint": str(out), "mlflow.source.git.commit": sha})
+    params = {k: v for k, v in flatten(data).items() if not k.startswith(("hydra.", "profile."))}
+    tracker.log_params(run_id, params)
+    log(f"[pretrain2d] MLflow run {run_id} in {uri} (experiment {EXPERIMENT})")
+    return tracker, run_id
+
+
+def _finish_tracking(tracker: Any, run_id: str | None, result: Mapping[str, Any], out: Path) -> None:
+    metrics = {k: float(v) for k, v in result.items()
+               if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))}
+    tracker.log_metrics(run_id, metrics, step=int(result.get("steps", 0)))
+    tracker.set_tags(run_id, {"checkpoint": str(out), "checkpoint_mb": f"{out.stat().st_size / 2**20:.1f}"})
+    import json
+
+    tracker.log_text(run_id, json.dumps(dict(result), indent=1, default=str), "result.json")
+    tracker.finish(run_id)
