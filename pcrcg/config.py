@@ -392,6 +392,10 @@ def _fraction(setting: str, value: Any) -> None:
 
 
 # settings inside other stages' groups, checked when present (their code checks them again)
+# Lightning strategies that fit a batch-size-1, one-model-per-process training
+TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true",
+                      "ddp_spawn_find_unused_parameters_true", "deepspeed", "fsdp")
+
 GROUP_RULES: dict[str, Any] = {
     "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
     "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
@@ -402,6 +406,8 @@ GROUP_RULES: dict[str, Any] = {
     "matcher2d.method": lambda k, v: _one_of(k, v, ("sift", "orb")),
     "matcher2d.ratio": _fraction,
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
+    "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
+    "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
     "data.workers": lambda k, v: _int_at_least(k, v, 1),
 }
 

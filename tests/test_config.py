@@ -78,6 +78,7 @@ def test_defaults_compose_and_validate(conf):
         (["projection=explicit", "projection.name=orthographic"], "projection.name", "implicit"),
         (["data.name=kitti"], "data.name", "synthmatch"),
         (["encoder2d.name=resnet"], "encoder2d.name", "imagenet"),
+        (["trainer=ddp", "trainer.strategy=dp"], "trainer.strategy", "ddp_spawn"),
         (["data.version=1"], "data.version", "the data code in this checkout"),
         # rules across groups
         (["features=deep", "projection=none"], "projection", "implicit or explicit"),
@@ -143,6 +144,13 @@ def test_sweep_values_are_checked_one_by_one(conf):
     # range sweeps are expanded too
     with pytest.raises(ConfigError):
         check_overrides(["views=range(1,5)"], [conf])
+
+
+def test_ddp_preset_composes(conf):
+    cfg = load_run_config(["trainer=ddp", "trainer.devices=4"], conf)
+    assert cfg.trainer.accelerator == "gpu" and cfg.trainer.devices == 4
+    assert cfg.trainer.strategy.startswith("ddp") and cfg.trainer.num_nodes == 1
+    assert cfg.trainer.max_epochs == cfg.profile.train.max_epochs
 
 
 def test_group_options_lists_option_files(conf):

@@ -235,3 +235,16 @@ def test_deep_features_train_the_2d_encoder(color_pair):
     assert enc_grads and sum(float(g.abs().sum()) for g in enc_grads) > 0  # the 3D loss reaches the 2D encoder
     groups = module.configure_optimizers()["optimizer"].param_groups
     assert len(groups) == 2  # 3D network and 2D branch
+
+
+@pytest.mark.slow
+def test_ddp_spawn_on_two_cpu_processes(tmp_path, toy_root):
+    # the trainer=ddp path (strategy passed through to Lightning) on 2 CPU processes (gloo): both
+    # processes step, rank 0 writes the checkpoints, and the result is returned to the caller
+    cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=2, devices=2, strategy="ddp_spawn", limit_val_batches=1),
+           "seed": 0, "data": {"root": str(toy_root)}}
+    res = train(cfg, out_dir=tmp_path / "ddp")
+    ck = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
+    assert ck["global_step"] == 2
+    module = load_module(res["checkpoint"])
+    assert module.net is not None

@@ -34,7 +34,7 @@ import torch
 
 from pcrcg.data.layout import Layout
 from pcrcg.errors import ConfigError, DataError
-from pcrcg.pretrain2d.frames import FrameSequence, list_sequences, load_sequence
+from pcrcg.pretrain2d.frames import FrameCache, FrameSequence, list_sequences, load_sequence
 from pcrcg.vision.encoders import ARCHS, INITS, ResUNet, build_encoder, save_pri3d_checkpoint
 from pcrcg.vision.pretrain import (
     PixelMatches,
@@ -197,8 +197,8 @@ class ViewPair:
 
 
 def load_split_sequences(layout: Layout, splits: Sequence[str], s: Settings, log: Callable[[str], None],
-                         setting: str) -> list[FrameSequence]:
-    """All RGB-D sequences of the scenes of ``splits`` (every ``frame_stride``-th frame), resized."""
+                         setting: str, cache: FrameCache | None = None) -> list[FrameSequence]:
+    """All RGB-D sequences of the scenes of ``splits`` (every ``frame_stride``-th frame), indexed."""
     out = []
     for split in splits:
         f = layout.split_file(split)
@@ -206,7 +206,8 @@ def load_split_sequences(layout: Layout, splits: Sequence[str], s: Settings, log
             raise DataError(f, f"split file of {setting}={split!r} is missing")
         for scene in layout.scenes(split):
             for seq, ids in list_sequences(layout, scene):
-                seqf = load_sequence(layout, scene, seq, ids[:: s.frame_stride], s.image_size)
+                seqf = load_sequence(layout, scene, seq, ids[:: s.frame_stride], s.image_size, s.overlap_stride,
+                                     cache)
                 if seqf.skipped:
                     log(f"[pretrain2d] {scene}/{seq}: skipped {seqf.skipped} frames with an unusable pose")
                 out.append(seqf)
@@ -218,8 +219,8 @@ def scene_pairs(seqs: Sequence[FrameSequence], s: Settings, rng: np.random.Gener
     """View pairs of every sequence (:func:`select_view_pairs`), at most ``max_per_scene`` per scene."""
     by_scene: dict[str, list[ViewPair]] = {}
     for k, sq in enumerate(seqs):
-        found = select_view_pairs(list(sq.depths), sq.poses, sq.K, s.min_gap, s.max_gap, s.min_overlap,
-                                  s.max_overlap, s.overlap_stride, s.depth_tolerance, s.depth_tolerance_rel)
+        found = select_view_pairs(list(sq.coarse_depths), sq.poses, sq.coarse_K, s.min_gap, s.max_gap,
+                                  s.min_overlap, s.max_overlap, 1, s.depth_tolerance, s.depth_tolerance_rel)
         by_scene.setdefault(sq.scene, []).extend(ViewPair(k, a, b, ov) for a, b, ov in found)
     out = []
     for scene in sorted(by_scene):
@@ -232,8 +233,8 @@ def scene_pairs(seqs: Sequence[FrameSequence], s: Settings, rng: np.random.Gener
 
 
 def pair_matches(sq: FrameSequence, a: int, b: int, s: Settings) -> PixelMatches:
-    """Visible correspondences from frame a into frame b of a sequence."""
-    return pixel_correspondences(sq.depths[a], sq.K, sq.depths[b], sq.K, relative_pose(sq.poses[a], sq.poses[b]),
+    """Visible correspondences from frame a into frame b of a sequence (at the input size)."""
+    return pixel_correspondences(sq.frame(a)[1], sq.K, sq.frame(b)[1], sq.K, relative_pose(sq.poses[a], sq.poses[b]),
                                  s.depth_tolerance, s.depth_tolerance_rel)
 
 
@@ -277,9 +278,10 @@ def evaluate(model: ResUNet, seqs: Sequence[FrameSequence], items: Sequence[Eval
     try:
         for it in items:
             sq = seqs[it.seq]
-            feats = model(to_images([sq.colors[it.a], sq.colors[it.b]], device))
-            acc, hits = match_accuracy(feats[0], feats[1], it.matches.src_pix, it.matches.tgt_uv,
-                                       sq.depths[it.b] > 0, s.pixel_threshold)
+            (ca, _), (cb, db) = sq.frame(it.a), sq.frame(it.b)
+            feats = model(to_images([ca, cb], device))
+            acc, hits = match_accuracy(feats[0], feats[1], it.matches.src_pix, it.matches.tgt_uv, db > 0,
+                                       s.pixel_threshold)
             accs.append(acc)
             n_hits += int(hits.sum())
             n_all += len(hits)
@@ -313,7 +315,7 @@ def train_step(model: ResUNet, opt: torch.optim.Optimizer, seqs: Sequence[FrameS
         m = sample_matches(pair_matches(sq, a, b, s), s.points, rng)
         if len(m) < s.min_points:
             continue
-        colors += [sq.colors[a], sq.colors[b]]
+        colors += [sq.frame(a)[0], sq.frame(b)[0]]
         matches.append(m)
     if not matches:
         return None
@@ -425,7 +427,8 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             raise DataError(root, "data root (data.root) does not exist (prepare=false uses it as it is)")
     layout = Layout(root)
     rng = np.random.default_rng(s.seed)
-    train_seqs = load_split_sequences(layout, s.train_splits, s, log, "train.splits")
+    cache = FrameCache(int(_get(data, "runtime.cache_frames", 4000) or 0))
+    train_seqs = load_split_sequences(layout, s.train_splits, s, log, "train.splits", cache)
     if not train_seqs:
         raise ConfigError("train.splits", list(s.train_splits),
                           f"splits with scenes in {layout.root / 'splits'} (these have none)")
@@ -446,7 +449,7 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             eval_seqs.append(sq.subset(range(cut, len(sq))))
             train_seqs[k] = sq.subset(range(cut))
     else:
-        eval_seqs = load_split_sequences(layout, [eval_split], s, log, "eval.split")
+        eval_seqs = load_split_sequences(layout, [eval_split], s, log, "eval.split", cache)
     pairs = scene_pairs(train_seqs, s, rng, s.max_per_scene)
     if not pairs:
         raise ConfigError("pairs.min_overlap", s.min_overlap,

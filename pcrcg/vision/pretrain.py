@@ -31,7 +31,8 @@ Public API (NumPy in / out for geometry, torch for features)
 * :func:`color_jitter` ``(images (B, 3, H, W) in [0, 1], strength, generator) -> images``: per-image
   brightness and contrast change (the two views of a pair get independent ones).
 * :func:`resize_view` ``(color, depth, K, size) -> (color, depth, K)``: area-resized color,
-  nearest-neighbour depth (no depth mixing across edges), intrinsics scaled to match.
+  nearest-neighbour depth (no depth mixing across edges), intrinsics scaled to match;
+  :func:`resize_depth` ``(depth, K, size) -> (depth, K)`` the depth part alone.
 
 Conventions: pixel ``(v, u)`` integer indices (row, column) as returned by
 :func:`pcrcg.geometry.backproject`; ``uv`` float ``(u, v)`` as returned by :func:`pcrcg.geometry.project`;
@@ -170,14 +171,20 @@ def resize_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray,
 
     if size is None or tuple(color.shape[:2]) == tuple(size):
         return color, depth, np.asarray(K, dtype=np.float64)
+    d, K2 = resize_depth(depth, K, size)
+    c = cv2.resize(color, (int(size[1]), int(size[0])), interpolation=cv2.INTER_AREA)
+    return c, d, K2
+
+
+def resize_depth(depth: np.ndarray, K: np.ndarray, size: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (H, W) resized to ``size`` = (h, w) by nearest neighbour at the new pixel centres (cv2's
+    INTER_NEAREST is off by half a pixel) and the intrinsics (3, 3) scaled to match."""
     h, w = int(size[0]), int(size[1])
-    sy, sx = h / color.shape[0], w / color.shape[1]
-    c = cv2.resize(color, (w, h), interpolation=cv2.INTER_AREA)
-    # nearest neighbour at the pixel centres of the new grid (cv2's INTER_NEAREST is off by half a pixel)
+    sy, sx = h / depth.shape[0], w / depth.shape[1]
     ys = np.clip(np.floor((np.arange(h) + 0.5) / sy).astype(np.int64), 0, depth.shape[0] - 1)
     xs = np.clip(np.floor((np.arange(w) + 0.5) / sx).astype(np.int64), 0, depth.shape[1] - 1)
     d = np.ascontiguousarray(depth[ys][:, xs])
-    return c, d, scale_intrinsics(np.asarray(K, dtype=np.float64), sx, sy)
+    return d, scale_intrinsics(np.asarray(K, dtype=np.float64), sx, sy)
 
 
 # --------------------------------------------------------------------------- features and loss
