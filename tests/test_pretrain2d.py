@@ -20,6 +20,7 @@ from pcrcg.geometry import backproject, invert, look_at, project, transform_poin
 from pcrcg.lifting.toyscene import ToyRoom, camera_path, render, toy_intrinsics
 from pcrcg.vision.pretrain import (
     color_jitter,
+    crop_pair,
     gather_pixels,
     info_nce,
     match_accuracy,
@@ -138,6 +139,13 @@ def test_sampling_and_resizing(room):
     s = sample_matches(m, 100, rng)
     assert len(s) == 100 and len({tuple(p) for p in s.src_pix}) == 100
     assert len(sample_matches(m, 10**6, rng)) == len(m)
+    for _ in range(5):  # crops share correspondences, given in crop coordinates
+        (va, ua), (vb, ub), cm = crop_pair(m, da.shape, db.shape, (32, 40), rng)
+        assert len(cm) > 0 and 0 <= va <= H - 32 and 0 <= ub <= W - 40
+        assert cm.src_pix.min() >= 0 and cm.src_pix[:, 0].max() < 32 and cm.tgt_pix[:, 1].max() < 40
+        full = {(tuple(a), tuple(b)) for a, b in zip(m.src_pix, m.tgt_pix)}
+        assert all((tuple(a + [va, ua]), tuple(b + [vb, ub])) in full for a, b in zip(cm.src_pix, cm.tgt_pix))
+        np.testing.assert_array_equal(np.rint(cm.tgt_uv[:, ::-1]).astype(np.int64), cm.tgt_pix)
     color = render(room, A, K, W, H)[0]
     c2, d2, K2 = resize_view(color, da, K, (30, 40))
     assert c2.shape == (30, 40, 3) and d2.shape == (30, 40)
@@ -273,7 +281,7 @@ def small_cfg(root: Path, out: Path, *extra: str):
     from conftest import compose
 
     return compose("pretrain2d", ["profile=tiny", "logger=none", "prepare=false", f"data.root={root}",
-                                  f"out={out}", "image_size=[48,64]", "encoder2d.out_dim=8",
+                                  f"out={out}", "image_size=[48,64]", "train.crop=[32,48]", "encoder2d.out_dim=8",
                                   "encoder2d.decoder_channels=[32,16,16,8,8]", "train.steps=3",
                                   "train.batch_pairs=2", "train.points=128", "eval.pairs=3", "eval.points=50",
                                   "runtime.progress=false", *extra])
@@ -370,6 +378,7 @@ def test_held_out_frames_when_the_eval_split_is_empty(rgbd_root, tmp_path):
     ("train.temperature=0", "train.temperature"),
     ("train.optimizer=lbfgs", "train.optimizer"),
     ("image_size=[10,10]", "image_size"),
+    ("train.crop=[200,80]", "train.crop"),
     ("eval.pixel_threshold=-1", "eval.pixel_threshold"),
     ("encoder2d.arch=resnet7", "encoder2d.arch"),
     ("train.splits=[nosuchsplit]", "train.splits"),
@@ -396,8 +405,8 @@ def test_cli_prints_the_result_as_its_last_line_and_logs_to_mlflow(rgbd_root, tm
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}", "OMP_NUM_THREADS": "1"}
     out = tmp_path / "cli.pth"
     cmd = [sys.executable, "-m", "pcrcg.pretrain2d", "profile=tiny", "prepare=false", f"data.root={rgbd_root}",
-           f"out={out}", "image_size=[48,64]", "train.steps=2", "train.batch_pairs=1", "train.points=64",
-           "eval.pairs=2", "eval.points=20", f"hydra.run.dir={tmp_path / 'hydra'}"]
+           f"out={out}", "image_size=[48,64]", "train.crop=null", "train.steps=2", "train.batch_pairs=1",
+           "train.points=64", "eval.pairs=2", "eval.points=20", f"hydra.run.dir={tmp_path / 'hydra'}"]
     proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])

@@ -39,6 +39,7 @@ from pcrcg.vision.encoders import ARCHS, INITS, ResUNet, build_encoder, save_pri
 from pcrcg.vision.pretrain import (
     PixelMatches,
     color_jitter,
+    crop_pair,
     gather_pixels,
     info_nce,
     match_accuracy,
@@ -103,6 +104,7 @@ class Settings:
     train_splits: tuple[str, ...]
     steps: int
     batch_pairs: int
+    crop: tuple[int, int] | None
     points: int
     min_points: int
     temperature: float
@@ -130,6 +132,13 @@ def check_settings(cfg: Mapping[str, Any]) -> Settings:
                 or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 32 for s in size)):
             raise ConfigError("image_size", size, "null or [H, W] with integers >= 32")
         size = (int(size[0]), int(size[1]))
+    crop = _get(cfg, "train.crop")
+    if crop is not None:
+        if (not isinstance(crop, (list, tuple)) or len(crop) != 2
+                or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 32 for c in crop)
+                or (size is not None and (crop[0] > size[0] or crop[1] > size[1]))):
+            raise ConfigError("train.crop", crop, f"null or [h, w] with integers >= 32, at most image_size {size}")
+        crop = (int(crop[0]), int(crop[1]))
     enc = _get(cfg, "encoder2d") or {}
     if enc.get("name", "scratch") not in INITS:
         raise ConfigError("encoder2d.name", enc.get("name"), " | ".join(INITS))
@@ -171,6 +180,7 @@ def check_settings(cfg: Mapping[str, Any]) -> Settings:
         depth_tolerance=_num(cfg, "correspondence.depth_tolerance", 0.0, low_open=True),
         depth_tolerance_rel=_num(cfg, "correspondence.depth_tolerance_rel", 0.0),
         train_splits=tuple(splits), steps=_int(cfg, "train.steps", 0), batch_pairs=_int(cfg, "train.batch_pairs", 1),
+        crop=crop,
         points=_int(cfg, "train.points", 2), min_points=_int(cfg, "train.min_points", 2),
         temperature=_num(cfg, "train.temperature", 0.0, low_open=True), symmetric=bool(_get(cfg, "train.symmetric")),
         optimizer=opt, lr=_num(cfg, "train.lr", 0.0, low_open=True), weight_decay=_num(cfg, "train.weight_decay", 0.0),
@@ -312,10 +322,19 @@ def train_step(model: ResUNet, opt: torch.optim.Optimizer, seqs: Sequence[FrameS
     for p in batch:
         sq = seqs[p.seq]
         a, b = (p.a, p.b) if rng.random() < 0.5 else (p.b, p.a)
-        m = sample_matches(pair_matches(sq, a, b, s), s.points, rng)
+        m = pair_matches(sq, a, b, s)
+        ca, cb = sq.frame(a)[0], sq.frame(b)[0]
+        if s.crop is not None:
+            cropped = crop_pair(m, ca.shape[:2], cb.shape[:2], s.crop, rng)
+            if cropped is None:
+                continue
+            (va, ua), (vb, ub), m = cropped
+            ca = ca[va:va + s.crop[0], ua:ua + s.crop[1]]
+            cb = cb[vb:vb + s.crop[0], ub:ub + s.crop[1]]
+        m = sample_matches(m, s.points, rng)
         if len(m) < s.min_points:
             continue
-        colors += [sq.frame(a)[0], sq.frame(b)[0]]
+        colors += [ca, cb]
         matches.append(m)
     if not matches:
         return None
@@ -527,7 +546,8 @@ def _train_and_evaluate(model: ResUNet, train_seqs, eval_seqs, pairs, items, s: 
         f"(before {before['match_acc']:.3f}), InfoNCE {after['loss']:.3f} (before {before['loss']:.3f})")
     if tracker is not None and losses:
         tracker.log_history(run_id, {"train/loss": losses})
-    return {"loss_start": _window_mean(losses, s.loss_window, False), "loss_end": _window_mean(losses, s.loss_window, True),
+    return {"loss_start": _window_mean(losses, s.loss_window, False),
+            "loss_end": _window_mean(losses, s.loss_window, True),
             "match_acc_scratch": before["match_acc"], "match_acc_pretrained": after["match_acc"],
             "eval_loss_scratch": before["loss"], "eval_loss_pretrained": after["loss"],
             "steps": s.steps, "skipped_steps": skipped}
