@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import multiprocessing as mp
 from pathlib import Path
 
@@ -162,3 +163,22 @@ def test_parallel_writers_on_one_existing_store(tmp_path):
     assert len(runs) == 6
     assert all(r.info.status == "FINISHED" and len(r.data.params) == 40 and len(r.data.metrics) == 25 for r in runs)
     assert Path(tmp_path / "mlflow.db").is_file()
+
+
+def test_config_hash_follows_the_weights_file_contents(tmp_path):
+    from pcrcg.tracking.hashing import config_hash
+
+    w = tmp_path / "pri3d.pth"
+    w.write_bytes(b"first weights")
+    cfg = {"encoder2d": {"name": "pri3d", "weights": str(w)}, "seed": 0}
+    h1 = config_hash(cfg)
+    assert config_hash(cfg) == h1
+    w.write_bytes(b"retrained weights, same path")
+    os.utime(w, ns=(1, 2))  # a new mtime even on coarse clocks
+    h2 = config_hash(cfg)
+    assert h2 != h1
+    # no weights / missing file: the path alone (the preflight reports the missing file)
+    assert config_hash({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0}) == \
+        config_hash({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0})
+    gone = {"encoder2d": {"name": "pri3d", "weights": str(tmp_path / "missing.pth")}, "seed": 0}
+    assert config_hash(gone) != h1

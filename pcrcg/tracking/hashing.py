@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from omegaconf import DictConfig, OmegaConf
@@ -46,9 +48,35 @@ def _drop(data: dict[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
     return out
 
 
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """SHA-256 (16 hex chars) of a file's bytes, remembered per (path, size, mtime)."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        _DIGESTS[key] = h.hexdigest()[:16]
+    return _DIGESTS[key]
+
+
+def _with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
+    """A run's identity includes what its 2D weights file holds, not only its path: retraining
+    the weights into the same file makes the runs that load it new runs."""
+    node = data.get("encoder2d")
+    weights = node.get("weights") if isinstance(node, dict) else None
+    if isinstance(weights, str) and weights and os.path.isfile(weights):
+        node["weights_digest"] = file_digest(weights)
+    return data
+
+
 def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
     """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``."""
-    data = _drop(to_plain(cfg), exclude)
+    data = _with_weights_digest(_drop(to_plain(cfg), exclude))
     blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
