@@ -456,7 +456,12 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                               f"(set encoder2d.{key}=/path/to/file; nothing is downloaded)")
     for path, value in _weight_paths(data):
         if not Path(str(value)).expanduser().is_file():
-            raise ConfigError(path, value, "an existing local file")
+            hint = ""
+            if path == "encoder2d.weights" and enc_name == "pri3d":
+                prof = data.get("profile", {}).get("name") if isinstance(data.get("profile"), Mapping) else None
+                hint = (f" (the project's 2D pretraining writes it: python -m pcrcg.pretrain2d"
+                        f"{' profile=' + prof if prof else ''}; or set encoder2d.weights=PATH)")
+            raise ConfigError(path, value, "an existing local file" + hint)
 
 
 def _weight_paths(data: Mapping[str, Any], prefix: str = "") -> Iterable[tuple[str, Any]]:
