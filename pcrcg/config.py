@@ -408,14 +408,18 @@ GROUP_RULES: dict[str, Any] = {
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
     "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
     "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
+    "trainer.optim.name": lambda k, v: _one_of(k, v, ("sgd", "adam")),
+    "trainer.optim.lr": _positive,
     "data.workers": lambda k, v: _int_at_least(k, v, 1),
 }
 
 
 def _check_group_rules(data: Mapping[str, Any]) -> None:
     for key, check in GROUP_RULES.items():
-        group, name = key.split(".", 1)
-        node = data.get(group)
+        *parents, name = key.split(".")
+        node: Any = data
+        for part in parents:
+            node = node.get(part) if isinstance(node, Mapping) else None
         if isinstance(node, Mapping) and name in node and node[name] is not None:
             try:
                 check(key, node[name])

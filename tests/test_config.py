@@ -79,6 +79,8 @@ def test_defaults_compose_and_validate(conf):
         (["data.name=kitti"], "data.name", "synthmatch"),
         (["encoder2d.name=resnet"], "encoder2d.name", "imagenet"),
         (["trainer=ddp", "trainer.strategy=dp"], "trainer.strategy", "ddp_spawn"),
+        (["trainer.optim.name=lamb"], "trainer.optim.name", "adam"),
+        (["trainer.optim.lr=0"], "trainer.optim.lr", "> 0"),
         (["data.version=1"], "data.version", "the data code in this checkout"),
         # rules across groups
         (["features=deep", "projection=none"], "projection", "implicit or explicit"),

@@ -81,6 +81,14 @@ def test_a_few_steps_lower_the_loss():
     assert np.mean(losses[-3:]) < 0.9 * np.mean(losses[:3]), losses
 
 
+def test_adam_option_and_unknown_optimiser():
+    module = PCRCGModule(MODEL, optim={"name": "adam", "lr": 1e-3})
+    opt = module.configure_optimizers()["optimizer"]
+    assert isinstance(opt, torch.optim.Adam) and opt.defaults["lr"] == 1e-3
+    with pytest.raises(ValueError, match="trainer.optim.name='lamb'"):
+        PCRCGModule(MODEL, optim={"name": "lamb"})
+
+
 class CountSteps(Callback):
     def __init__(self, fail_at: int | None = None):
         self.steps = 0

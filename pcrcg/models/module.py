@@ -31,8 +31,10 @@ STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall
 
 @dataclass
 class OptimConfig:
-    """SGD + exponential decay per epoch (the paper's settings by default)."""
+    """SGD + exponential decay per epoch (the paper's settings by default); ``name="adam"`` swaps
+    the optimiser for Adam (``momentum`` then unused) for short training budgets."""
 
+    name: str = "sgd"
     lr: float = 0.005
     momentum: float = 0.98
     weight_decay: float = 1e-6
@@ -42,7 +44,13 @@ class OptimConfig:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "OptimConfig":
         names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        cfg = cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        if cfg.name not in OPTIMIZERS:
+            raise ValueError(f"trainer.optim.name={cfg.name!r}: allowed values are {', '.join(OPTIMIZERS)}")
+        return cfg
+
+
+OPTIMIZERS = ("sgd", "adam")
 
 
 @dataclass
@@ -232,6 +240,9 @@ class PCRCGModule(L.LightningModule):
             lp = [p for p in self.lifter.parameters() if p.requires_grad]
             if lp:
                 groups.append({"params": lp, "lr": c.lr * c.encoder_lr_scale})
-        opt = torch.optim.SGD(groups, lr=c.lr, momentum=c.momentum, weight_decay=c.weight_decay)
+        if c.name == "adam":
+            opt = torch.optim.Adam(groups, lr=c.lr, weight_decay=c.weight_decay)
+        else:
+            opt = torch.optim.SGD(groups, lr=c.lr, momentum=c.momentum, weight_decay=c.weight_decay)
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=c.lr_decay)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch", "frequency": 1}}
