@@ -2,7 +2,9 @@
 
 * ``mode=score benchmark_dir=DIR estimate_dir=DIR``: score ``<estimate_dir>/<scene>/est.log``
   against ``<benchmark_dir>/<scene>/gt.log|gt.info`` (a missing estimate is a failure).
-* ``mode=pair method=fpfh|icp|color_icp|sift_dlt source=FILE target=FILE``: register one pair.
+* ``mode=pair method=fpfh|icp|color_icp|sift_dlt source=FILE target=FILE``: register one pair;
+  ``method=learned checkpoint=FILE``: with a trained model (Predator, or PCR-CG with the
+  fragments' RGB-D views in ``source_views``/``target_views``), in eval mode.
 * ``mode=benchmark method=... data.root=DIR``: a classical method over the test benchmarks of a
   data set in the 3DMatch layout; writes ``<out_dir>/<benchmark>/<scene>/est.log`` and
   ``<out_dir>/metrics.json``.
@@ -77,14 +79,66 @@ def _load_views(prefixes: list[str], intrinsics: str | None) -> list:
     return views
 
 
+def _read_pair_clouds(cfg: DictConfig):
+    from pcrcg.data.layout import read_cloud
+
+    sp = _existing(_need(cfg, "source", "a point cloud file (.ply, .pcd, .npz, .pth)"), "source cloud")
+    tp = _existing(_need(cfg, "target", "a point cloud file (.ply, .pcd, .npz, .pth)"), "target cloud")
+    return sp, tp, read_cloud(sp), read_cloud(tp)
+
+
+def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
+    """Register two clouds with a trained checkpoint: network outputs, sampling, matching, RANSAC."""
+    from pcrcg.evaluation.model import as_fragment
+    from pcrcg.evaluation.run import configs_from
+    from pcrcg.models.train import infer_clouds, load_module
+    from pcrcg.registration.pipeline import register_features
+
+    ckpt = _existing(_need(cfg, "checkpoint", "a trained model's checkpoint (method=learned)"), "checkpoint")
+    _, _, (src, _), (tgt, _) = _read_pair_clouds(cfg)
+    n_points = int(cfg.pair_points)
+    if n_points < 3:
+        raise ConfigError("pair_points", n_points, "an integer >= 3")
+    rcfg, _ = configs_from(cfg)
+    module = load_module(ckpt, device=None if str(rcfg.device) == "auto" else rcfg.device)
+    src_views = tgt_views = []
+    if module.lifter is not None:
+        src_views = _load_views(list(cfg.source_views or []), cfg.intrinsics)
+        tgt_views = _load_views(list(cfg.target_views or []), cfg.intrinsics)
+        need = int(module.lifter.cfg.n_views_needed)
+        if len(src_views) < need or len(tgt_views) < need:
+            raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
+                              f"{need} frame prefixes .../frame-XXXXXX per fragment (this checkpoint lifts color "
+                              f"from {need} view(s))")
+    t0 = time.perf_counter()
+    out = infer_clouds(module, src, tgt, src_views, tgt_views)
+    res = register_features(as_fragment(out.src), as_fragment(out.tgt), n_points, rcfg, seed=int(cfg.seed))
+    return {
+        "method": "learned",
+        "checkpoint": str(ckpt),
+        "source": str(cfg.source),
+        "target": str(cfg.target),
+        "points": [len(out.src.points), len(out.tgt.points)],
+        "n_points": n_points,
+        "correspondences": int(len(res.correspondences)),
+        "ransac_inliers": int(res.ransac.n_inliers),
+        "fitness": _num(res.ransac.fitness),
+        "color_coverage": _num(out.color_coverage),
+        "seconds": round(time.perf_counter() - t0, 4),
+        "transform": np.asarray(res.transform, dtype=float).round(10).tolist(),
+    }
+
+
 def run_pair(cfg: DictConfig) -> dict[str, Any]:
-    from pcrcg.data.layout import check_rigid, read_cloud, read_matrix
+    from pcrcg.data.layout import check_rigid, read_matrix
     from pcrcg.evaluation.run import configs_from
     from pcrcg.registration.baselines import METHODS, register_pair
 
     method = str(cfg.method)
+    if method == "learned":
+        return run_pair_learned(cfg)
     if method not in METHODS:
-        raise ConfigError("method", method, " | ".join(METHODS))
+        raise ConfigError("method", method, " | ".join((*METHODS, "learned")))
     src = tgt = src_col = tgt_col = None
     src_views = tgt_views = []
     if method == "sift_dlt":
@@ -94,10 +148,7 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
             raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
                               "frame prefixes .../frame-XXXXXX of both fragments (sift_dlt uses images)")
     else:
-        sp = _existing(_need(cfg, "source", "a point cloud file (.ply, .pcd, .npz, .pth)"), "source cloud")
-        tp = _existing(_need(cfg, "target", "a point cloud file (.ply, .pcd, .npz, .pth)"), "target cloud")
-        src, src_col = read_cloud(sp)
-        tgt, tgt_col = read_cloud(tp)
+        sp, tp, (src, src_col), (tgt, tgt_col) = _read_pair_clouds(cfg)
         if method == "color_icp":
             for path, col in ((sp, src_col), (tp, tgt_col)):
                 if col is None:

@@ -11,6 +11,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
+from pcrcg.errors import DataError
 from pcrcg.data.layout import PairRecord, write_gt_log, write_pairs, write_ply
 from pcrcg.models.datamodule import PairCollate, PairDataModule
 from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
@@ -169,6 +170,22 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
     back = load_pair_output(path)
     np.testing.assert_array_equal(back.tgt.descriptors, o.tgt.descriptors)
     assert (back.scene, back.i, back.j) == (o.scene, o.i, o.j)
+    # the same from the command line: `python -m pcrcg.evaluate mode=pair method=learned checkpoint=...`
+    from hydra import compose, initialize_config_dir
+
+    from pcrcg.evaluate import run as evaluate_run
+
+    write_ply(tmp_path / "src.ply", s.src_points)
+    write_ply(tmp_path / "tgt.ply", s.tgt_points)
+    args = ["profile=tiny", "mode=pair", "method=learned", f"source={tmp_path / 'src.ply'}",
+            f"target={tmp_path / 'tgt.ply'}", "pair_points=500"]
+    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        res = evaluate_run(compose(config_name="evaluate", overrides=[*args, f"checkpoint={best}"]))
+        with pytest.raises(DataError, match="none.ckpt"):
+            evaluate_run(compose(config_name="evaluate", overrides=[*args, f"checkpoint={tmp_path / 'none.ckpt'}"]))
+    T = np.asarray(res["transform"])
+    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+    assert res["points"] == [len(o.src.points), len(o.tgt.points)] and res["correspondences"] > 0
 
 
 def test_datamodule_calibrates_and_restores_limits(toy_root):
