@@ -21,6 +21,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.losses import LossConfig, PredatorLoss
 from pcrcg.models.predator import PredatorOutput, build_predator
@@ -46,7 +47,7 @@ class OptimConfig:
         names = set(cls.__dataclass_fields__)
         cfg = cls(**{k: v for k, v in dict(m or {}).items() if k in names})
         if cfg.name not in OPTIMIZERS:
-            raise ValueError(f"trainer.optim.name={cfg.name!r}: allowed values are {', '.join(OPTIMIZERS)}")
+            raise ConfigError("trainer.optim.name", cfg.name, " | ".join(OPTIMIZERS))
         return cfg
 
 
