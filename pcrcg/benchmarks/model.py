@@ -10,7 +10,7 @@ the profile's voxel, said so in the output):
 * data pipeline, seconds per pair: the collate step (grid subsampling, radius neighbours of every
   level, correspondences, augmentation) with an empty neighbour cache (``cold``) and with the
   fragments' pyramids cached (``warm``, what training sees from the second epoch on);
-* training, seconds per pair: forward + losses + backward + SGD step;
+* training, seconds per pair: forward + losses + backward + optimiser step (the profile's);
 * inference, seconds per pair: forward without gradients and the per-fragment outputs;
 * peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU).
 
@@ -158,7 +158,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         "voxel": m["voxel_size"], "levels": m["num_layers"], "first_dim": m["first_dim"], "params": n_params,
         "in_dim": module.in_dim, "level0_points_per_pair": float(np.mean(n0)), "neighbor_limits": list(limits),
         "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
-        "train_s_per_pair": s_train, "infer_s_per_pair": s_infer,
+        "train_s_per_pair": s_train, "infer_s_per_pair": s_infer, "optimizer": type(opt).__name__,
         "peak_mem_mb": peak, "peak_mem_kind": "cuda allocated" if device.startswith("cuda") else "process RSS",
         "torch_threads": torch.get_num_threads(),
     }
@@ -186,7 +186,7 @@ def _print(row: dict[str, Any]) -> None:
           f"{row['params'] / 1e6:.2f} M params, in_dim {row['in_dim']}; "
           f"{row['level0_points_per_pair']:.0f} level-0 points per pair; limits {row['neighbor_limits']}")
     print(f"  data pipeline  {row['data_s_per_pair_cold']:.3f} s/pair cold, {row['data_s_per_pair_warm']:.3f} s/pair warm")
-    print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + SGD)")
+    print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + {row['optimizer']})")
     print(f"  inference      {row['infer_s_per_pair']:.3f} s/pair")
     print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
 
