@@ -396,6 +396,9 @@ def _fraction(setting: str, value: Any) -> None:
 TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true",
                       "ddp_spawn_find_unused_parameters_true", "deepspeed", "fsdp")
 
+# trainer.optim.name (pcrcg.models.module.OptimConfig)
+OPTIMIZERS = ("sgd", "adam")
+
 GROUP_RULES: dict[str, Any] = {
     "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
     "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
@@ -408,7 +411,7 @@ GROUP_RULES: dict[str, Any] = {
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
     "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
     "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
-    "trainer.optim.name": lambda k, v: _one_of(k, v, ("sgd", "adam")),
+    "trainer.optim.name": lambda k, v: _one_of(k, v, OPTIMIZERS),
     "trainer.optim.lr": _positive,
     "data.workers": lambda k, v: _int_at_least(k, v, 1),
 }

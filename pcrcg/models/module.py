@@ -21,6 +21,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.losses import LossConfig, PredatorLoss
@@ -49,9 +50,6 @@ class OptimConfig:
         if cfg.name not in OPTIMIZERS:
             raise ConfigError("trainer.optim.name", cfg.name, " | ".join(OPTIMIZERS))
         return cfg
-
-
-OPTIMIZERS = ("sgd", "adam")
 
 
 @dataclass
