@@ -94,11 +94,11 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     from pcrcg.models.train import infer_clouds, load_module
     from pcrcg.registration.pipeline import register_features
 
-    ckpt = _existing(_need(cfg, "checkpoint", "a trained model's checkpoint (method=learned)"), "checkpoint")
-    _, _, (src, _), (tgt, _) = _read_pair_clouds(cfg)
     n_points = int(cfg.pair_points)
     if n_points < 3:
         raise ConfigError("pair_points", n_points, "an integer >= 3")
+    ckpt = _existing(_need(cfg, "checkpoint", "a trained model's checkpoint (method=learned)"), "checkpoint")
+    _, _, (src, _), (tgt, _) = _read_pair_clouds(cfg)
     rcfg, _ = configs_from(cfg)
     module = load_module(ckpt, device=None if str(rcfg.device) == "auto" else rcfg.device)
     src_views = tgt_views = []

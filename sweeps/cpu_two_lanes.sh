@@ -22,11 +22,12 @@ COMMON="profile=cpu runtime.report_on_end=false"
 job() {  # job <lane log> <experiment> [overrides...]
   local log=$1 exp=$2
   shift 2
-  local start
+  local start rc
   start=$(date +%s)
   echo "== $(date +%T) $exp $*" >>"$log"
   "$PYTHON" -m pcrcg.run +experiment="$exp" $COMMON "$@" -m >>"$log.out" 2>&1
-  echo "== $(date +%T) $exp $* -> rc $? in $(( $(date +%s) - start )) s" >>"$log"
+  rc=$?
+  echo "== $(date +%T) $exp $* -> rc $rc in $(( $(date +%s) - start )) s" >>"$log"
 }
 
 lane1() {
@@ -48,7 +49,8 @@ lane2() {
   job "$L" sift_dlt
   echo "== $(date +%T) pretrain2d" >>"$L"
   "$PYTHON" -m pcrcg.pretrain2d profile=cpu >>"$L.out" 2>&1
-  echo "== $(date +%T) pretrain2d -> rc $?" >>"$L"
+  local rc=$?
+  echo "== $(date +%T) pretrain2d -> rc $rc" >>"$L"
   job "$L" backbone_2d
   job "$L" window_size window_size=17
   job "$L" views views=3
