@@ -267,12 +267,18 @@ def test_threedmatch_release_is_converted(tmp_path):
     assert len(read_gt_log(Layout(root).benchmark_dir("3DLoMatch", "office") / "gt.log")) == 1
 
 
-def test_threedmatch_missing_fragment_is_named_before_work(tmp_path):
+def test_threedmatch_missing_fragment_drops_its_pairs(tmp_path):
+    """A partial release builds the pairs it can (see tests/test_data_release.py); none is an error."""
     frag_dir, bench_dir = _fake_release(tmp_path)
     (frag_dir / "office" / "cloud_bin_3.pth").unlink()
-    with pytest.raises(DataError, match="office/cloud_bin_3"):
-        prepare_dataset(_release_cfg(tmp_path, frag_dir, bench_dir), log=lambda m: None)
-    assert not (tmp_path / "out").exists()
+    root = prepare_dataset(_release_cfg(tmp_path, frag_dir, bench_dir), log=lambda m: None)
+    assert read_manifest(root)["stats"]["pairs"] == {"3DMatch": 4, "3DLoMatch": 1}
+    assert not (Layout(root).benchmark_dir("3DLoMatch", "office")).exists()
+    for p in frag_dir.glob("*/cloud_bin_*.pth"):
+        p.unlink()
+    with pytest.raises(DataError, match="no official pair has both fragments available"):
+        prepare_dataset(_release_cfg(tmp_path / "again", frag_dir, bench_dir), log=lambda m: None)
+    assert not (tmp_path / "again" / "out").exists()
 
 
 def test_threedmatch_official_benchmark_files_are_read(tmp_path):

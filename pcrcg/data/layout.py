@@ -6,7 +6,7 @@ Everything the project reads or writes about a data set goes through here::
     <root>/fragments/<scene>/cloud_bin_<i>.ply         points (m), fragment frame = camera of first frame
     <root>/fragments/<scene>/cloud_bin_<i>.info.txt    "<scene> <seq> <first_frame_id> <last_frame_id>"
     <root>/rgbd/<scene>/camera-intrinsics.txt          3x3
-    <root>/rgbd/<scene>/<seq>/frame-XXXXXX.{color.png,depth.png,pose.txt}
+    <root>/rgbd/<scene>/<seq>/frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}
     <root>/benchmarks/{3DMatch,3DLoMatch}/<scene>/{gt.log,gt.info,gt_overlap.log}
     <root>/pairs/{train,val}.txt                       "scene i j overlap" + 4x4 (j into i), see write_pairs
 
@@ -16,6 +16,10 @@ Conventions
   In a pair the *source* is ``j`` and the *target* is ``i``.
 * Poses (``.pose.txt``) are camera-to-world.
 * ``gt.info`` is the 6x6 information matrix, translation first (3DMatch convention).
+* Color frames are ``.color.png`` (7-Scenes, generated data) or ``.color.jpg`` (SUN3D, some
+  published 7-Scenes samples); a frame has one of the two.
+* A fragment's ``.info.txt`` is ours (first line, then ``#`` comments) or the release's (first line,
+  then the fragment's 4x4 pose); only the first line is read.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from pcrcg.errors import DataError
 
 BENCHMARKS = ("3DMatch", "3DLoMatch")
 SPLITS = ("train", "val", "test")
+# suffixes of a frame's color image, in order of preference when both exist
+COLOR_SUFFIXES = (".color.png", ".color.jpg")
 
 
 # --------------------------------------------------------------------------- records
@@ -113,13 +119,38 @@ class Layout:
         return len(list(d.glob("cloud_bin_*.ply")))
 
 
+def color_path(prefix: Path) -> Path:
+    """The color image of a frame given ``.../frame-XXXXXX``: ``.color.png`` or ``.color.jpg``,
+    whichever exists (``.color.png`` when neither does, so that errors name the usual file)."""
+    prefix = Path(prefix)
+    for suffix in COLOR_SUFFIXES:
+        p = prefix.with_name(prefix.name + suffix)
+        if p.is_file():
+            return p
+    return prefix.with_name(prefix.name + COLOR_SUFFIXES[0])
+
+
 def frame_paths(prefix: Path) -> tuple[Path, Path, Path]:
     """(color, depth, pose) paths of a frame given ``.../frame-XXXXXX``."""
+    prefix = Path(prefix)
     return (
-        prefix.with_name(prefix.name + ".color.png"),
+        color_path(prefix),
         prefix.with_name(prefix.name + ".depth.png"),
         prefix.with_name(prefix.name + ".pose.txt"),
     )
+
+
+def frame_ids(frames_dir: str | os.PathLike) -> list[int]:
+    """Sorted ids of the frames in a folder: every ``frame-XXXXXX.color.png`` or ``.color.jpg``
+    (other files are not looked at; an absent folder has none)."""
+    d = Path(frames_dir)
+    ids: set[int] = set()
+    for suffix in COLOR_SUFFIXES:
+        for p in d.glob(f"frame-*{suffix}"):
+            num = p.name[len("frame-"): -len(suffix)]
+            if num.isdigit():
+                ids.add(int(num))
+    return sorted(ids)
 
 
 # --------------------------------------------------------------------------- text files
@@ -334,10 +365,10 @@ def read_color(path: str | os.PathLike) -> np.ndarray:
     import cv2
 
     path = _need(Path(path))
+    _check_image_complete(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        raise DataError(path, "cannot decode the color image (corrupt or truncated PNG?)")
-    _check_png_complete(path)
+        raise DataError(path, "cannot decode the color image (corrupt PNG/JPEG?)")
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
@@ -346,24 +377,28 @@ def read_depth(path: str | os.PathLike, depth_scale: float = 1000.0) -> np.ndarr
     import cv2
 
     path = _need(Path(path))
+    _check_image_complete(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise DataError(path, "cannot decode the depth image (corrupt or truncated PNG?)")
+        raise DataError(path, "cannot decode the depth image (corrupt PNG?)")
     if img.ndim != 2 or img.dtype != np.uint16:
         raise DataError(path, f"depth must be a single-channel uint16 PNG, got {img.dtype} {img.shape}")
-    _check_png_complete(path)
     return img.astype(np.float32) / np.float32(depth_scale)
 
 
-def _check_png_complete(path: Path) -> None:
-    """OpenCV decodes some truncated PNGs silently (rows of zeros); require the IEND chunk."""
-    if path.suffix.lower() != ".png":
-        return
+def _check_image_complete(path: Path) -> None:
+    """OpenCV decodes truncated PNGs and JPEGs silently (rows of zeros or gray, a warning at most):
+    a file that starts as a PNG must end with its IEND chunk, one that starts as a JPEG with its
+    end-of-image marker FFD9 (zero padding after it is allowed). Other bytes are left to the decoder."""
     with open(path, "rb") as f:
-        f.seek(max(0, path.stat().st_size - 12))
+        head = f.read(8)
+        f.seek(max(0, path.stat().st_size - 64))
         tail = f.read()
-    if b"IEND" not in tail:
-        raise DataError(path, "PNG is truncated (no IEND chunk)")
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        if b"IEND" not in tail[-12:]:
+            raise DataError(path, "PNG is truncated (no IEND chunk)")
+    elif head.startswith(b"\xff\xd8\xff") and not tail.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        raise DataError(path, "JPEG is truncated (no end-of-image marker FFD9)")
 
 
 def write_color(path: str | os.PathLike, rgb: np.ndarray) -> None:
@@ -414,8 +449,9 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
 
     Reads ``.ply`` / ``.pcd`` (Open3D), ``.npz`` (keys ``points``/``pcd``/``xyz`` and optional
     ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
-    ``torch.load(weights_only=True)`` and, failing that, parsed as an array archive; no code
-    from the file is ever executed.
+    ``torch.load(weights_only=True)`` and, failing that (numpy arrays, as in Predator's release:
+    legacy non-zip ``torch.save`` files), by a reader that resolves numpy's array reconstruction
+    only; no code from the file is ever executed.
     """
     path = _need(Path(path))
     suffix = path.suffix.lower()
@@ -450,30 +486,37 @@ def _check_points(pts: np.ndarray, path: Path) -> np.ndarray:
 
 
 def _load_pth_points(path: Path) -> np.ndarray:
+    """The (N, 3) array of a ``.pth`` file: a tensor/array (or a dict with ``points``/``pcd``/``xyz``).
+
+    ``torch.load(weights_only=True)`` reads tensors; Predator's fragments are numpy arrays, which
+    that loader refuses, so they are read by :func:`_restricted_pth_unpickle` (numpy's array
+    reconstruction only).
+    """
     import pickle
 
     import torch
 
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, zipfile.BadZipFile, EOFError) as exc:
-        # Predator's fragments are numpy arrays saved with torch.save; the safe unpickler
-        # refuses numpy's reconstructors, so fall back to our own array-only unpickler.
+    except (pickle.UnpicklingError, RuntimeError, zipfile.BadZipFile, EOFError, ValueError, TypeError):
         try:
-            obj = _restricted_numpy_unpickle(path)
-        except Exception as exc2:  # noqa: BLE001 - reported with the file name
-            raise DataError(
-                path, f"cannot read .pth safely ({exc.__class__.__name__}; {exc2})"
-            ) from None
+            obj = _restricted_pth_unpickle(path.read_bytes())
+        except Exception as exc:  # noqa: BLE001 - reported with the file name, on one line
+            msg = " ".join(str(exc).split()) or exc.__class__.__name__
+            raise DataError(path, f"cannot read .pth safely: {msg}") from None
     if isinstance(obj, dict):
         obj = next((obj[k] for k in ("points", "pcd", "xyz") if k in obj), None)
         if obj is None:
             raise DataError(path, "dict in .pth has no 'points' entry")
     if hasattr(obj, "numpy"):
         obj = obj.numpy()
-    return np.asarray(obj, dtype=np.float32)
+    try:
+        return np.asarray(obj, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise DataError(path, f".pth holds a {type(obj).__name__}, not an array of points") from None
 
 
+# The only globals a .pth may name: numpy's array reconstruction and what its pickles use.
 _ALLOWED_GLOBALS = {
     ("numpy.core.multiarray", "_reconstruct"),
     ("numpy._core.multiarray", "_reconstruct"),
@@ -484,23 +527,51 @@ _ALLOWED_GLOBALS = {
     ("collections", "OrderedDict"),
     ("_codecs", "encode"),  # how pickle protocol 2 stores raw array bytes
 }
+# torch.save's legacy (non-zip) format: pickles of this number, the protocol version and a dict of
+# system facts, then the object, then the list of tensor storage keys (and the storages' bytes)
+_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
+_LEGACY_PROTOCOL = 1001
 
 
-def _restricted_numpy_unpickle(path: Path):
-    """Unpickle a torch.save'd numpy array allowing only numpy's array reconstructors."""
+def _restricted_unpickler(buf: io.BytesIO, allow_globals: bool = True):
+    """A pickle reader that resolves only ``_ALLOWED_GLOBALS`` (none when ``allow_globals`` is
+    false) and refuses tensor storages (persistent ids): nothing in the file is ever executed."""
     import pickle
 
     class _Restricted(pickle.Unpickler):
         def find_class(self, module, name):
-            if (module, name) in _ALLOWED_GLOBALS:
+            if allow_globals and (module, name) in _ALLOWED_GLOBALS:
                 return super().find_class(module, name)
-            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed")
+            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed (a .pth is read as numpy arrays only)")
 
-    raw = path.read_bytes()
-    if raw[:2] == b"PK":  # torch zip container: the pickle is archive/data.pkl
+        def persistent_load(self, pid):
+            raise pickle.UnpicklingError("holds tensor storages that torch.load(weights_only=True) could not read")
+
+    return _Restricted(buf)
+
+
+def _restricted_pth_unpickle(raw: bytes):
+    """The object of a ``torch.save`` file (zip or legacy) or of a plain pickle, numpy arrays only.
+
+    Zip files: ``archive/data.pkl``. Legacy files: the magic number, protocol and system info are
+    checked, then the object's pickle is read (the storage keys after it are not needed for arrays).
+    """
+    if raw[:2] == b"PK":  # torch zip container: the pickle is <archive>/data.pkl
         with zipfile.ZipFile(io.BytesIO(raw)) as zf:
-            name = next(n for n in zf.namelist() if n.endswith("data.pkl"))
-            raw = zf.read(name)
-            if b"persistent_load" in raw:
-                raise pickle.UnpicklingError("tensor storages are not supported here")
-    return _Restricted(io.BytesIO(raw)).load()
+            name = next((n for n in zf.namelist() if n.endswith("data.pkl")), None)
+            if name is None:
+                raise ValueError("zip archive without data.pkl")
+            return _restricted_unpickler(io.BytesIO(zf.read(name))).load()
+    buf = io.BytesIO(raw)
+    first = _restricted_unpickler(buf).load()
+    if not (isinstance(first, int) and first == _LEGACY_MAGIC):
+        return first  # a plain pickle of the object
+    protocol = _restricted_unpickler(buf, allow_globals=False).load()
+    if protocol != _LEGACY_PROTOCOL:
+        raise ValueError(f"legacy torch.save protocol {protocol!r}, expected {_LEGACY_PROTOCOL}")
+    sys_info = _restricted_unpickler(buf, allow_globals=False).load()
+    if not isinstance(sys_info, dict):
+        raise ValueError("legacy torch.save file without its system-info record")
+    if sys_info.get("little_endian") is False:
+        raise ValueError("big-endian legacy torch.save files are not supported")
+    return _restricted_unpickler(buf).load()

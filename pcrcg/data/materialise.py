@@ -23,22 +23,7 @@ import numpy as np
 
 from pcrcg.data.build import SceneResult, build_scene, check_frames
 from pcrcg.data.fusion import FusionConfig
-from pcrcg.data.layout import (
-    BENCHMARKS,
-    Layout,
-    PairRecord,
-    read_cloud,
-    read_fragment_info,
-    read_gt_info,
-    read_gt_log,
-    read_gt_overlap,
-    write_gt_info,
-    write_gt_log,
-    write_gt_overlap,
-    write_pairs,
-    write_ply,
-    write_split,
-)
+from pcrcg.data.layout import BENCHMARKS, Layout, frame_ids, frame_paths, write_pairs, write_split
 from pcrcg.data.pairs import PairConfig
 from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
@@ -93,8 +78,10 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
         _check_redkitchen_source(data_cfg)
         job = lambda tmp: _prepare_redkitchen(tmp, data_cfg, log)  # noqa: E731
     else:
-        _check_threedmatch_source(data_cfg)
-        job = lambda tmp: _prepare_threedmatch(tmp, data_cfg, log)  # noqa: E731
+        from pcrcg.data.release import prepare_release, source_from
+
+        source_from(data_cfg)  # the release's folders, checked before anything is written
+        job = lambda tmp: prepare_release(tmp, data_cfg, log)  # noqa: E731
     _atomic_build(root, h, params, job, log)
     return root
 
@@ -237,9 +224,9 @@ def _require_benchmarks(stats: dict, setting: str) -> None:
 
 
 def _real_frame_ids(frames_dir: Path) -> list[int]:
-    ids = sorted(int(p.name[6:12]) for p in frames_dir.glob("frame-*.color.png"))
+    ids = frame_ids(frames_dir)
     if not ids:
-        raise DataError(frames_dir, "no frame-XXXXXX.color.png files (3DMatch RGB-D layout expected)")
+        raise DataError(frames_dir, "no frame-XXXXXX.color.png or .color.jpg files (3DMatch RGB-D layout expected)")
     return ids
 
 
@@ -264,8 +251,7 @@ def _prepare_redkitchen(tmp: Path, data_cfg, log) -> dict:
     dst.mkdir(parents=True)
     shutil.copy2(frames_dir / "camera-intrinsics.txt", layout.intrinsics(scene))
     for fid in ids:
-        for ext in (".color.png", ".depth.png", ".pose.txt"):
-            src = frames_dir / f"frame-{fid:06d}{ext}"
+        for src in frame_paths(frames_dir / f"frame-{fid:06d}"):
             if not src.is_file():
                 raise DataError(src, "frame file is missing")
             shutil.copy2(src, dst / src.name)
@@ -277,99 +263,4 @@ def _prepare_redkitchen(tmp: Path, data_cfg, log) -> dict:
     _write_pairs_files(layout, [res], splits)
     stats = _stats([res], splits)
     stats["frames"] = len(ids)
-    return stats
-
-
-# --------------------------------------------------------------------------- threedmatch (real release)
-
-
-def _check_threedmatch_source(data_cfg) -> None:
-    src = data_cfg["source"]
-    bdir = Path(str(src["benchmarks_dir"]))
-    for b in BENCHMARKS:
-        if not (bdir / b).is_dir():
-            raise DataError(bdir / b, "benchmark folder (data.source.benchmarks_dir) is missing")
-    fdir = src.get("fragments_dir")
-    if fdir is None:
-        raise ConfigError("data.source.fragments_dir", None, "the folder of the release's fragments "
-                          "(<dir>/<scene>/cloud_bin_<i>.pth|.ply)")
-    fdir = Path(str(fdir))
-    if not fdir.is_dir():
-        raise DataError(fdir, "fragments folder (data.source.fragments_dir) does not exist")
-    missing = []
-    for b in BENCHMARKS:
-        for sd in sorted(p for p in (bdir / b).iterdir() if p.is_dir()):
-            for f in ("gt.log", "gt.info"):
-                if not (sd / f).is_file():
-                    raise DataError(sd / f, "benchmark file is missing")
-            for r in read_gt_log(sd / "gt.log", sd.name):
-                for i in (r.i, r.j):
-                    if _find_fragment(fdir, sd.name, i) is None:
-                        missing.append(f"{fdir / sd.name}/cloud_bin_{i}.(pth|ply)")
-    if missing:
-        raise DataError(missing[0], f"fragment is missing ({len(set(missing))} missing in all)")
-    rgbd = src.get("rgbd_dir")
-    if rgbd is not None and not Path(str(rgbd)).is_dir():
-        raise DataError(rgbd, "RGB-D folder (data.source.rgbd_dir) does not exist")
-
-
-def _find_fragment(fdir: Path, scene: str, i: int) -> Path | None:
-    for ext in (".ply", ".pth", ".npz"):
-        p = fdir / scene / f"cloud_bin_{i}{ext}"
-        if p.is_file():
-            return p
-    return None
-
-
-def _prepare_threedmatch(tmp: Path, data_cfg, log) -> dict:
-    """Convert the release to our layout: fragments to .ply, benchmark files copied, RGB-D linked."""
-    src = data_cfg["source"]
-    bdir, fdir = Path(str(src["benchmarks_dir"])), Path(str(src["fragments_dir"]))
-    rgbd = Path(str(src["rgbd_dir"])) if src.get("rgbd_dir") else None
-    layout = Layout(tmp)
-    scenes = sorted({p.name for b in BENCHMARKS for p in (bdir / b).iterdir() if p.is_dir()})
-    stats = {"scenes": {"train": 0, "val": 0, "test": len(scenes)}, "pairs": {}, "fragments": 0}
-    for b in BENCHMARKS:
-        n = 0
-        for scene in sorted(p.name for p in (bdir / b).iterdir() if p.is_dir()):
-            d = layout.benchmark_dir(b, scene)
-            d.mkdir(parents=True, exist_ok=True)
-            recs = read_gt_log(bdir / b / scene / "gt.log", scene)
-            infos = read_gt_info(bdir / b / scene / "gt.info")
-            ov_file = bdir / b / scene / "gt_overlap.log"
-            ov = read_gt_overlap(ov_file) if ov_file.is_file() else {}
-            recs = [PairRecord(scene, r.i, r.j, r.transform, ov.get((r.i, r.j), float("nan")), r.n_fragments) for r in recs]
-            write_gt_log(d / "gt.log", recs)
-            write_gt_info(d / "gt.info", recs, [infos[(r.i, r.j)] for r in recs])
-            write_gt_overlap(d / "gt_overlap.log", recs)
-            n += len(recs)
-        stats["pairs"][b] = n
-    from tqdm import tqdm
-
-    for scene in tqdm(scenes, desc="fragments", unit="scene"):
-        sdir = fdir / scene
-        layout.fragments_dir(scene).mkdir(parents=True, exist_ok=True)
-        for p in sorted(sdir.glob("cloud_bin_*")):
-            if p.name.endswith(".info.txt"):
-                read_fragment_info(p)  # validates
-                shutil.copy2(p, layout.fragments_dir(scene) / p.name)
-                continue
-            if p.suffix not in (".ply", ".pth", ".npz"):
-                continue
-            i = int(p.stem.split("_")[-1])
-            if p.suffix == ".ply":
-                shutil.copy2(p, layout.fragment(scene, i))
-            else:
-                pts, cols = read_cloud(p)
-                write_ply(layout.fragment(scene, i), pts, cols)
-            stats["fragments"] += 1
-        if rgbd is not None and (rgbd / scene).is_dir():
-            layout.rgbd_dir(scene).parent.mkdir(parents=True, exist_ok=True)
-            os.symlink((rgbd / scene).resolve(), layout.rgbd_dir(scene))
-    write_split(layout.split_file("test"), scenes)
-    write_split(layout.split_file("train"), [])
-    write_split(layout.split_file("val"), [])
-    write_pairs(layout.pairs_file("train"), [])
-    write_pairs(layout.pairs_file("val"), [])
-    log(f"[prepare] threedmatch: {len(scenes)} test scenes, pairs {stats['pairs']}")
     return stats

@@ -1,6 +1,6 @@
 """RGB-D frames of a data set in the 3DMatch layout, indexed for the 2D pretraining.
 
-* :func:`list_sequences` ``(layout, scene) -> [(seq, frame_ids)]``: every ``frame-XXXXXX.color.png``
+* :func:`list_sequences` ``(layout, scene) -> [(seq, frame_ids)]``: every ``frame-XXXXXX.color.png|.jpg``
   under ``rgbd/<scene>/<seq>/`` (generated scenes and real frames alike; fragments are not needed).
 * :func:`load_sequence` ``(layout, scene, seq, frame_ids, image_size, coarse_stride, cache) ->
   FrameSequence``: reads every frame once to keep its pose and a coarse depth map (for the pair
@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from pcrcg.data.layout import Layout, frame_paths, read_color, read_depth, read_intrinsics, read_pose
+from pcrcg.data.layout import frame_ids as frames_in
 from pcrcg.errors import DataError
 from pcrcg.vision.pretrain import resize_depth, resize_view
 
@@ -122,11 +123,11 @@ def list_sequences(layout: Layout, scene: str) -> list[tuple[str, list[int]]]:
         raise DataError(d, "RGB-D folder of the scene is missing (rgbd/<scene>/<seq>/frame-XXXXXX.*)")
     out = []
     for seq_dir in sorted(p for p in d.iterdir() if p.is_dir()):
-        ids = sorted(int(p.name[6:12]) for p in seq_dir.glob("frame-*.color.png") if p.name[6:12].isdigit())
+        ids = frames_in(seq_dir)
         if ids:
             out.append((seq_dir.name, ids))
     if not out:
-        raise DataError(d, "no frame-XXXXXX.color.png files in any sequence folder")
+        raise DataError(d, "no frame-XXXXXX.color.png or .color.jpg files in any sequence folder")
     return out
 
 
