@@ -23,6 +23,7 @@ from pcrcg.evaluation.metrics import (
     score_benchmark,
     write_estimates,
 )
+from pcrcg.evaluation.pairs import INLIER_RATIO_FILE, write_inlier_ratios
 from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig, pair_seed, register_features
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,7 @@ def evaluate_model_outputs(
     ns = list(cfg.n_points)
     est: dict[int, dict[str, dict[tuple[int, int], np.ndarray]]] = {n: defaultdict(dict) for n in ns}
     irs: dict[int, dict[str, list[float]]] = {n: defaultdict(list) for n in ns}
+    pair_irs: dict[int, dict[str, dict[tuple[int, int], float]]] = {n: defaultdict(dict) for n in ns}
     seconds = {n: 0.0 for n in ns}
     seen: dict[str, set[tuple[int, int]]] = defaultdict(set)
     coverage: list[float] = []
@@ -96,6 +98,7 @@ def evaluate_model_outputs(
             irs[n][scene].append(
                 inlier_ratio(src.points[c[:, 0]], tgt.points[c[:, 1]], T_gt, inlier_distance) if len(c) else 0.0
             )
+            pair_irs[n][scene][(i, j)] = irs[n][scene][-1]
         n_done += 1
 
     scored = subset(gt, seen) if only_evaluated else dict(gt)
@@ -116,6 +119,7 @@ def evaluate_model_outputs(
         if est_dir is not None:
             for s, g in gt.items():
                 write_estimates(Path(est_dir) / str(n) / s / "est.log", g, est[n].get(s, {}))
+                write_inlier_ratios(Path(est_dir) / str(n) / s / INLIER_RATIO_FILE, g, pair_irs[n].get(s, {}))
     top = max(ns)
     metrics["rre"] = metrics[f"rre_{top}"]
     metrics["rte"] = metrics[f"rte_{top}"]

@@ -37,6 +37,7 @@ from pcrcg.evaluation.metrics import (
     write_estimates,
 )
 from pcrcg.evaluation.model import evaluate_model_outputs, subset
+from pcrcg.evaluation.pairs import pair_artifacts
 from pcrcg.registration.baselines import METHODS as CLASSICAL, BaselineConfig, register_pair
 from pcrcg.registration.pipeline import RegistrationConfig
 
@@ -300,6 +301,7 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
         artifacts.append((est_dir, f"estimates/{b}"))
     if coverage:
         metrics["color_coverage"] = float(np.mean(coverage))
+    artifacts += pair_artifacts(out_dir, gts, artifacts, predator_variant, th, only_present=max_pairs is not None)
     out_dir.mkdir(parents=True, exist_ok=True)
     mfile = out_dir / "metrics.json"
     mfile.write_text(json.dumps({"metrics": metrics, "protocol": protocol}, indent=1, default=_json_default))

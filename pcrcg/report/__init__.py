@@ -4,6 +4,10 @@ Reads the runs of the MLflow store (same resolution as ``pcrcg.run``), fills eve
 spec of ``conf/report.yaml`` and writes ``<out_dir>/<table>.{md,tex,csv}``, the figures
 ``<table>_recall.png`` / ``<table>_coverage.png`` and ``<out_dir>/README.md`` (all tables,
 protocol per benchmark, seeds, how well our trends follow the paper's).
+
+Tables that compare rows (``compare``) also test the paper's orderings with a paired bootstrap
+over the test pairs (``stats`` in conf/report.yaml; :mod:`pcrcg.report.orderings`), under the
+table and in ``<table>_orderings.csv``.
 """
 
 from __future__ import annotations
@@ -17,8 +21,10 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.errors import ConfigError
+from pcrcg.report.orderings import StatsSettings, check_orderings
+from pcrcg.report.outcomes import OutcomeSource
 from pcrcg.report.plots import plot_coverage, plot_table_recall
-from pcrcg.report.render import to_latex, to_markdown, write_csv
+from pcrcg.report.render import to_latex, to_markdown, write_csv, write_orderings_csv
 from pcrcg.report.runs import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
@@ -81,16 +87,24 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     wanted = _profile_name(c.get("profile"))
     profiles = {e: wanted or newest_profile(runs, e) for e in experiments}
 
+    settings = StatsSettings.from_dict(c.get("stats"))
+
     result = ReportResult(out_dir, uri)
-    for name in names:
-        table = fill_table(specs[name], runs, paper, profiles)
-        result.tables[name] = table
+    with OutcomeSource(uri, base, runs) as source:
+        for name in names:
+            table = fill_table(specs[name], runs, paper, profiles)
+            table.orderings = check_orderings(table, source, settings)
+            result.tables[name] = table
+    for name, table in result.tables.items():
         for suffix, text in (("md", to_markdown(table)), ("tex", to_latex(table))):
             p = out_dir / f"{name}.{suffix}"
             p.write_text(text)
             result.files.append(p)
         write_csv(table, out_dir / f"{name}.csv")
         result.files.append(out_dir / f"{name}.csv")
+        p = write_orderings_csv(table, out_dir / f"{name}_orderings.csv")
+        if p is not None:
+            result.files.append(p)
         for fn, suffix in ((plot_table_recall, "recall"), (plot_coverage, "coverage")):
             p = fn(table, out_dir / f"{name}_{suffix}.png")
             if p is not None:
@@ -177,15 +191,29 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
     out.append("Open the runs: `mlflow ui --backend-store-uri <store>`; every cell lists its runs "
                "(run id, config hash, git sha, profile, seed), here and in the CSV files.")
     out.append("")
-    out.append("| Table | Experiment | Profile | Finished runs | Paper trend kept (row pairs) | Files |")
-    out.append("|---|---|---|---:|---|---|")
+    out.append("Paper trend kept: of the row pairs with both numbers, per column, how many we order as the paper "
+               "does (signs only). Paper orderings beyond noise: of the orderings the table tests (`compare`), "
+               "how many hold / are reversed beyond the paired bootstrap interval over the test pairs / lie "
+               "within noise; untested ones (no per-pair outcomes, or no run of ours) are counted apart.")
+    out.append("")
+    out.append("| Table | Experiment | Profile | Finished runs | Paper trend kept (row pairs) "
+               "| Paper orderings: holds / reversed / within noise (untested) | Files |")
+    out.append("|---|---|---|---:|---|---|---|")
     for name, table in result.tables.items():
         exp = table.spec.experiment
         n_done = int(((runs["experiment"] == exp) & (runs["status"] == "FINISHED")).sum()) if not runs.empty else 0
         t = trend_agreement(table)
         trend = f"{t['agree']}/{t['pairs']}" if t["pairs"] else "n/a"
+        o = t["orderings"]
+        orderings = f"{o['holds']} / {o['reversed']} / {o['within_noise']}" if o["tested"] or o["untested"] else "n/a"
+        extra = ([f"{o['untested']} untested"] if o["untested"] else []) + (
+            [f"{o['no_ordering']} without a paper ordering"] if o["no_ordering"] else [])
+        if extra:
+            orderings += f" ({'; '.join(extra)})"
         files = ", ".join(f"[{s}]({name}.{s})" for s in ("md", "tex", "csv"))
-        out.append(f"| {name} | {exp} | {profiles.get(exp) or '—'} | {n_done} | {trend} | {files} |")
+        if table.orderings:
+            files += f", [orderings]({name}_orderings.csv)"
+        out.append(f"| {name} | {exp} | {profiles.get(exp) or '—'} | {n_done} | {trend} | {orderings} | {files} |")
     out += ["", "## Protocol (from the runs' logged settings)", ""]
     out += _protocol(runs)
     out.append("")

@@ -4,6 +4,10 @@ Each row of the paper becomes up to three lines: the paper's numbers, ours (mean
 over seeds) and the difference (ours − paper). A missing number of ours is a dash with a
 numbered note giving the reason; the runs behind every cell are listed under the table
 (run id, config hash, git sha, profile, seed) and in the CSV, one line per cell.
+
+Under a table that compares rows (``compare`` in conf/report.yaml), the paper's orderings
+tested: the paper's difference, ours with its paired bootstrap interval over the test pairs
+and the verdict (``pcrcg.report.orderings``); also ``<table>_orderings.csv``.
 """
 
 from __future__ import annotations
@@ -114,6 +118,38 @@ def _trace(table: FilledTable) -> list[tuple[str, str, str]]:
     return out
 
 
+def fmt_signed(v: float | None, digits: int = 1) -> str:
+    if v is None or math.isnan(v):
+        return DASH
+    return f"{v:+.{digits}f}"
+
+
+def fmt_interval(iv) -> str:
+    return DASH if iv is None else f"[{fmt_signed(iv.lo)}, {fmt_signed(iv.hi)}]"
+
+
+def _ordering_texts(line, notes: _Notes) -> list[str]:
+    """Comparison, where, paper Δ, ours Δ, interval, verdict of one ordering line."""
+    ours = fmt_signed(line.ours_diff)
+    if line.ours_diff is not None and line.n_seeds > 1:
+        ours += f" ± {line.ours_std:.1f} ({line.n_seeds} seeds)"
+    mark = line.verdict or DASH
+    if line.interval is None and line.reason:
+        mark += notes.mark(line.reason)
+    return [line.comparison.text, line.where, fmt_signed(line.paper_diff), ours, fmt_interval(line.interval), mark]
+
+
+def orderings_intro(table: FilledTable) -> str:
+    iv = next((ln.interval for ln in table.orderings if ln.interval is not None), None)
+    how = (f"paired bootstrap {iv.level:.0%} interval over the test pairs ({iv.n_boot} resamples of the pairs "
+           f"within each scene, seed {iv.seed}; seeds pooled per pair)" if iv is not None
+           else "paired bootstrap interval over the test pairs")
+    return ("Δ = row − reference, in points; ours: the difference of our means over seeds (± std of the per-seed "
+            f"difference where both rows ran the same seeds); interval: {how}. Verdict: the paper's ordering "
+            "*holds* (interval beyond 0 on the paper's side), is *reversed* (beyond 0 on the other side), or "
+            "lies *within noise*.")
+
+
 def to_markdown(table: FilledTable) -> str:
     spec = table.spec
     notes = _Notes()
@@ -132,6 +168,12 @@ def to_markdown(table: FilledTable) -> str:
         out.append("|---|" + "---:|" * len(cols))
         for label, texts in _lines(table, cols, notes):
             out.append(f"| {label} | " + " | ".join(texts) + " |")
+        out.append("")
+    if table.orderings:
+        out += ["**The paper's orderings, tested**", "", orderings_intro(table), "",
+                "| Comparison | Where | Paper Δ | Ours Δ | 95% interval | Verdict |",
+                "|---|---|---:|---:|---:|---|"]
+        out += ["| " + " | ".join(_ordering_texts(line, notes)) + " |" for line in table.orderings]
         out.append("")
     if notes.items:
         out.append("Notes (why a number is missing):")
@@ -214,6 +256,14 @@ def to_latex(table: FilledTable) -> str:
         out.append(r"\midrule")
     out[-1] = r"\bottomrule"
     out += [r"\end{tabular}", r"\end{table}"]
+    if table.orderings:
+        intro = latex_escape(orderings_intro(table).replace("*", ""))
+        out += ["", r"\begin{table}[h]", r"\centering",
+                f"\\caption{{{latex_escape(spec.title)}: the paper's orderings, tested. {intro}}}",
+                r"\begin{tabular}{llrrrl}", r"\toprule",
+                r"Comparison & Where & Paper $\Delta$ & Ours $\Delta$ & Interval & Verdict \\", r"\midrule"]
+        out += [" & ".join(latex_escape(t) for t in _ordering_texts(line, notes)) + r" \\" for line in table.orderings]
+        out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
     if notes.items:
         out += ["% missing numbers:"] + [f"% [{i}] {r}" for i, r in enumerate(notes.items, 1)]
     return "\n".join(out) + "\n"
@@ -256,3 +306,42 @@ def write_csv(table: FilledTable, path: Path) -> None:
         w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
         w.writeheader()
         w.writerows(csv_rows(table))
+
+
+ORDERING_FIELDS = ("table", "comparison", "reference", "row", "reference_variant", "variant", "metric", "benchmark",
+                   "column_variant", "at", "paper_reference", "paper_row", "paper_diff", "ours_reference", "ours_row",
+                   "ours_diff", "ours_diff_std", "n_seeds", "ci_low", "ci_high", "level", "n_boot", "boot_seed",
+                   "n_pairs", "n_scenes", "verdict", "reason", "source", "reference_run_ids", "row_run_ids")
+
+
+def _r(v: float | None, nd: int = 4):
+    return "" if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), nd)
+
+
+def ordering_rows(table: FilledTable) -> Iterable[dict]:
+    for ln in table.orderings:
+        c, iv = ln.comparison, ln.interval
+        yield {
+            "table": table.spec.name, "comparison": c.text, "reference": c.ref.text, "row": c.row.text,
+            "reference_variant": c.ref_variant or "", "variant": c.variant or "", "metric": ln.metric,
+            "benchmark": ln.benchmark, "column_variant": ln.variant, "at": "" if ln.at is None else ln.at,
+            "paper_reference": _r(ln.paper_ref), "paper_row": _r(ln.paper_row), "paper_diff": _r(ln.paper_diff),
+            "ours_reference": _r(ln.ours_ref), "ours_row": _r(ln.ours_row), "ours_diff": _r(ln.ours_diff),
+            "ours_diff_std": _r(ln.ours_std) if ln.n_seeds > 1 else "", "n_seeds": ln.n_seeds,
+            "ci_low": _r(iv.lo) if iv else "", "ci_high": _r(iv.hi) if iv else "", "level": iv.level if iv else "",
+            "n_boot": iv.n_boot if iv else "", "boot_seed": iv.seed if iv else "",
+            "n_pairs": iv.n_pairs if iv else "", "n_scenes": iv.n_scenes if iv else "",
+            "verdict": ln.verdict or "", "reason": ln.reason or "", "source": ln.source,
+            "reference_run_ids": ";".join(ln.ref_runs), "row_run_ids": ";".join(ln.row_runs),
+        }
+
+
+def write_orderings_csv(table: FilledTable, path: Path) -> Path | None:
+    """``<table>_orderings.csv`` (one line per tested ordering); None when the table compares nothing."""
+    if not table.orderings:
+        return None
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=ORDERING_FIELDS)
+        w.writeheader()
+        w.writerows(ordering_rows(table))
+    return path

@@ -9,6 +9,13 @@ column's benchmark, metric and sample size.
 
 Columns are listed explicitly or as a ``grid`` (metric x benchmark x n_points, in that
 order); the metric also names the table's sections in Markdown/LaTeX.
+
+``compare`` names the orderings of the paper that the report tests (``pcrcg.report.orderings``):
+``consecutive`` (each row against the one above it), ``{baseline: <row>}`` (every row against
+one), ``{pairs: [[<reference row>, <row>], ...]}`` and ``{columns: [[<reference variant>,
+<variant>], ...]}`` (within each row, e.g. ICP from the original vs. the improved pose); keys
+combine. A row is named by its label, its ``method variant`` text, its variant or its method
+(whichever is unique). Only rows with runs of ours take part (published baselines do not).
 """
 
 from __future__ import annotations
@@ -80,6 +87,23 @@ class Column:
 
 
 @dataclass(frozen=True)
+class Comparison:
+    """Two cells per column compared as ``row − ref``: two rows (same columns), or, with
+    ``ref_variant``/``variant`` set, two column variants of the same row."""
+
+    ref: Row
+    row: Row
+    ref_variant: str | None = None
+    variant: str | None = None
+
+    @property
+    def text(self) -> str:
+        if self.variant is not None:
+            return f"{self.row.text}: {self.variant} − {self.ref_variant}"
+        return f"{self.row.text} − {self.ref.text}"
+
+
+@dataclass(frozen=True)
 class TableSpec:
     name: str
     title: str
@@ -88,6 +112,7 @@ class TableSpec:
     columns: tuple[Column, ...]
     paper_table: str = ""
     note: str = ""
+    compare: tuple[Comparison, ...] = ()
 
     @property
     def experiments(self) -> list[str]:
@@ -112,6 +137,62 @@ def _columns(raw: Mapping[str, Any] | Sequence[Mapping[str, Any]], table: str) -
     return tuple(cols)
 
 
+def _find_row(rows: Sequence[Row], name: Any, where: str) -> Row:
+    name = str(name)
+    for attr in ("label", "text", "variant", "method"):
+        hits = [r for r in rows if getattr(r, attr) == name]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1 and attr in ("label", "text"):
+            break
+    raise ConfigError(where, name, "a unique row label, 'method variant', variant or method of the table: "
+                      + ", ".join(repr(r.text) for r in rows))
+
+
+def _pair(item: Any, where: str) -> tuple[Any, Any]:
+    if isinstance(item, (list, tuple)) and len(item) == 2:
+        return item[0], item[1]
+    raise ConfigError(where, item, "a pair [reference, compared]")
+
+
+def parse_compare(raw: Any, rows: Sequence[Row], columns: Sequence[Column], table: str) -> tuple[Comparison, ...]:
+    """The ``compare`` node of a table spec -> comparisons (see module docstring)."""
+    if raw in (None, "", False, "none"):
+        return ()
+    where = f"specs.{table}.compare"
+    node = {"consecutive": True} if raw == "consecutive" else raw
+    if not isinstance(node, Mapping):
+        raise ConfigError(where, raw, "consecutive, or a mapping of consecutive / baseline / pairs / columns")
+    unknown = set(node) - {"consecutive", "baseline", "pairs", "columns"}
+    if unknown:
+        raise ConfigError(where, sorted(unknown), "consecutive, baseline, pairs, columns")
+    ours = [r for r in rows if r.where]
+    out: list[Comparison] = []
+    if node.get("consecutive"):
+        out += [Comparison(a, b) for a, b in zip(ours, ours[1:])]
+    if node.get("baseline") is not None:
+        ref = _find_row(rows, node["baseline"], f"{where}.baseline")
+        out += [Comparison(ref, r) for r in ours if r is not ref]
+    for item in node.get("pairs") or []:
+        a, b = _pair(item, f"{where}.pairs")
+        out.append(Comparison(_find_row(rows, a, f"{where}.pairs"), _find_row(rows, b, f"{where}.pairs")))
+    variants = {c.variant for c in columns}
+    for item in node.get("columns") or []:
+        va, vb = (str(v) for v in _pair(item, f"{where}.columns"))
+        for v in (va, vb):
+            if v not in variants:
+                raise ConfigError(f"{where}.columns", v, "a column variant of the table: " + ", ".join(sorted(variants)))
+        out += [Comparison(r, r, va, vb) for r in ours]
+    seen, unique = set(), []
+    for c in out:
+        key = (id(c.ref), id(c.row), c.ref_variant, c.variant)
+        if key in seen or (c.ref is c.row and c.variant is None):  # twice, or a row against itself
+            continue
+        seen.add(key)
+        unique.append(c)
+    return tuple(unique)
+
+
 def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
     """``specs`` node of conf/report.yaml -> {name: TableSpec}."""
     out: dict[str, TableSpec] = {}
@@ -123,13 +204,15 @@ def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
         )
         if not rows:
             raise ConfigError(f"specs.{name}.rows", [], "at least one row")
+        columns = _columns(s["columns"], name)
         out[name] = TableSpec(
             name=name,
             title=str(s.get("title", name)),
             experiment=str(s.get("experiment", name)),
             rows=rows,
-            columns=_columns(s["columns"], name),
+            columns=columns,
             paper_table=str(s.get("paper_table", name)),
             note=str(s.get("note", "") or ""),
+            compare=parse_compare(s.get("compare"), rows, columns, name),
         )
     return out

@@ -59,6 +59,7 @@ class Cell:
     runs: list[RunRef] = field(default_factory=list)
     reason: str | None = None
     metric_key: str | None = None
+    keys: list[str] = field(default_factory=list)  # the metric key of each value (aligned with values, runs)
 
     @property
     def diff(self) -> float | None:
@@ -78,6 +79,7 @@ class FilledTable:
     profile: str | None
     coverage: dict[str, tuple[float, float, int]] = field(default_factory=dict)  # row text -> (mean, std, n)
     protocol: list[str] = field(default_factory=list)  # settings of the runs behind the cells
+    orderings: list[Any] = field(default_factory=list)  # pcrcg.report.orderings.OrderingLine, one per tested ordering
 
     def cell(self, row: Row, col: Column) -> Cell:
         for c in self.cells:
@@ -191,16 +193,18 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             if done.empty:
                 cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof)
                 continue
-            vals, refs = [], []
+            vals, refs, keys = [], [], []
             for _, rec in done.iterrows():
                 for key in col.keys():
                     v = rec.get(f"metrics.{key}")
                     if v is not None and not (isinstance(v, float) and math.isnan(v)):
                         vals.append(float(v))
                         refs.append(_ref(rec))
+                        keys.append(key)
                         cell.metric_key = key
                         break
             cell.runs = refs
+            cell.keys = keys
             if not vals:
                 # (MLflow's table shows a metric that was not logged and a NaN alike)
                 cell.runs = [_ref(rec) for _, rec in done.iterrows()]
@@ -261,8 +265,11 @@ def protocol_summary(runs: pd.DataFrame) -> list[str]:
 def trend_agreement(table: FilledTable) -> dict[str, Any]:
     """How well our row ordering follows the paper's, per column, over rows with both numbers.
 
-    Returns ``{"pairs": n, "agree": k, "fraction": k / n, "best_paper": {...}, "best_ours": {...}}``
-    (best row per column; lower is better for RRE/RTE).
+    Returns ``{"pairs": n, "agree": k, "fraction": k / n, "best_paper": {...}, "best_ours": {...},
+    "orderings": {...}}`` (best row per column; lower is better for RRE/RTE). ``orderings``: of
+    the paper's orderings the report tests (``table.orderings``), how many hold beyond the paired
+    bootstrap interval, are reversed beyond it, lie within noise, or could not be tested
+    (``untested``: no interval; ``no_ordering``: a tie or no numbers in the paper).
     """
     agree = pairs = 0
     best_paper: dict[str, str] = {}
@@ -282,5 +289,17 @@ def trend_agreement(table: FilledTable) -> dict[str, Any]:
                     continue
                 pairs += 1
                 agree += int(np.sign(dp) == np.sign(do))
+    from pcrcg.report.stats import HOLDS, NO_PAPER, NOISE, PAPER_TIE, REVERSED
+
+    counts = {"tested": 0, "holds": 0, "reversed": 0, "within_noise": 0, "untested": 0, "no_ordering": 0}
+    for line in table.orderings:
+        v = line.verdict
+        if v in (NO_PAPER, PAPER_TIE):
+            counts["no_ordering"] += 1
+        elif v is None:
+            counts["untested"] += 1
+        else:
+            counts["tested"] += 1
+            counts[{HOLDS: "holds", REVERSED: "reversed", NOISE: "within_noise"}[v]] += 1
     return {"pairs": pairs, "agree": agree, "fraction": agree / pairs if pairs else float("nan"),
-            "best_paper": best_paper, "best_ours": best_ours}
+            "best_paper": best_paper, "best_ours": best_ours, "orderings": counts}

@@ -1,0 +1,237 @@
+"""The paper's orderings between rows, tested beyond test-pair noise.
+
+For each comparison of a table (``compare`` in ``conf/report.yaml``, :class:`~pcrcg.report.spec.Comparison`),
+each recall metric and benchmark of its columns, and each place of ``stats.at`` (a sample size
+such as 5000, and ``mean``: the mean over the table's sample sizes; tables without sample sizes
+have one place), one :class:`OrderingLine`:
+
+* the paper's difference ``row − reference`` (from ``paper_tables.csv``; the mean over the
+  sizes for ``mean``);
+* ours: the difference of our means over seeds, ``± std`` over seeds where both rows ran the
+  same two or more seeds (the per-seed difference);
+* the paired bootstrap interval (:mod:`pcrcg.report.stats`) over the test pairs, from the runs'
+  per-pair outcomes (:mod:`pcrcg.report.outcomes`); for ``mean`` a pair's outcome is its mean
+  over the sizes (the statistic is linear, so this is the mean over sizes of the recalls);
+  several seeds are pooled per pair;
+* the verdict: ``holds`` (the interval excludes 0 on the paper's side), ``reversed`` (on the
+  other side), ``within noise``, or no ordering to test (a tie or no numbers in the paper);
+  ``None`` with a reason when there is no interval.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pcrcg.errors import ConfigError
+from pcrcg.report.spec import Column, Comparison
+from pcrcg.report.stats import LEVEL, N_BOOT, SEED, Interval, mean_std, paired_bootstrap, verdict
+from pcrcg.report.tables import Cell, FilledTable
+
+MEAN = "mean"
+# metrics with a per-pair outcome (the others, RRE/RTE/IR, are not tested)
+TESTED_METRICS = ("RR", "FMR")
+
+
+@dataclass(frozen=True)
+class StatsSettings:
+    """``stats`` node of conf/report.yaml."""
+
+    n_boot: int = N_BOOT
+    seed: int = SEED
+    level: float = LEVEL
+    at: tuple[Any, ...] = (5000, MEAN)
+    metrics: tuple[str, ...] = TESTED_METRICS
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None) -> "StatsSettings":
+        d = dict(d or {})
+        at = tuple(MEAN if str(a) == MEAN else int(a) for a in (d.get("at") or cls.at))
+        metrics = tuple(str(m) for m in (d.get("metrics") or cls.metrics))
+        bad = [m for m in metrics if m not in TESTED_METRICS]
+        if bad:
+            raise ConfigError("stats.metrics", bad, " | ".join(TESTED_METRICS))
+        level = float(d.get("level", cls.level))
+        if not 0 < level < 1:
+            raise ConfigError("stats.level", level, "a number in (0, 1), e.g. 0.95")
+        n_boot = int(d.get("n_boot", cls.n_boot))
+        if n_boot < 1:
+            raise ConfigError("stats.n_boot", n_boot, "a positive number of resamples, e.g. 2000")
+        return cls(n_boot, int(d.get("seed", cls.seed)), level, at, metrics)
+
+
+@dataclass
+class OrderingLine:
+    comparison: Comparison
+    metric: str
+    benchmark: str
+    variant: str
+    at: int | str | None
+    paper_ref: float | None = None
+    paper_row: float | None = None
+    ours_ref: float | None = None
+    ours_row: float | None = None
+    ours_diff: float | None = None
+    ours_std: float | None = None
+    n_seeds: int = 0  # seeds both rows ran (behind ours_std)
+    interval: Interval | None = None
+    verdict: str | None = None
+    reason: str | None = None
+    source: str = ""
+    ref_runs: list[str] = field(default_factory=list)
+    row_runs: list[str] = field(default_factory=list)
+
+    @property
+    def paper_diff(self) -> float | None:
+        if self.paper_ref is None or self.paper_row is None:
+            return None
+        return self.paper_row - self.paper_ref
+
+    @property
+    def where(self) -> str:
+        at = "" if self.at is None else ("mean over N" if self.at == MEAN else f"{self.at}")
+        variant = self.variant if self.variant and self.comparison.variant is None else ""
+        return " ".join(p for p in (variant, self.benchmark, self.metric, at) if p)
+
+
+def _groups(columns: Sequence[Column]) -> dict[tuple[str, str, str], list[Column]]:
+    out: dict[tuple[str, str, str], list[Column]] = {}
+    for c in columns:
+        out.setdefault((c.metric, c.benchmark, c.variant), []).append(c)
+    return out
+
+
+def _select(cols: Sequence[Column], at: Any) -> list[Column]:
+    if at is None:
+        return [c for c in cols if c.n_points is None][:1]
+    if at == MEAN:
+        sized = [c for c in cols if c.n_points is not None]
+        return sized if len(sized) > 1 else []
+    return [c for c in cols if c.n_points == at]
+
+
+def _places(cols: Sequence[Column], settings: StatsSettings) -> list[Any]:
+    if all(c.n_points is None for c in cols):
+        return [None]
+    return [a for a in settings.at if _select(cols, a)]
+
+
+def _mean(vals: Sequence[float | None]) -> float | None:
+    return float(np.mean(vals)) if vals and all(v is not None for v in vals) else None
+
+
+def _per_run(cells: Sequence[Cell]) -> dict[str, tuple[Any, float, list[tuple[str, float]]]]:
+    """run id -> (RunRef, mean value over the cells, [(metric key, value) per cell]) for the runs in every cell."""
+    by_cell = [{r.run_id: (r, k, v) for r, k, v in zip(c.runs, c.keys, c.values)} for c in cells]
+    common = [rid for rid in by_cell[0] if all(rid in d for d in by_cell[1:])] if by_cell else []
+    out = {}
+    for rid in common:
+        kv = [(d[rid][1], d[rid][2]) for d in by_cell]
+        out[rid] = (by_cell[0][rid][0], float(np.mean([v for _, v in kv])), kv)
+    return out
+
+
+def _missing(cells: Sequence[Cell]) -> str:
+    for c in cells:
+        if c.mean is None:
+            return f"{c.row.text}: {c.reason or 'no number of ours'}"
+    return "no run of ours is in every column compared"
+
+
+def _vector(source: Any, rid: str, kv: Sequence[tuple[str, float]]):
+    """A run's per-pair outcome, averaged over the cells (sample sizes); (series, source) or (None, reason)."""
+    series, where = [], ""
+    for key, value in kv:
+        o = source.outcomes(rid, key, value)
+        if o.values is None:
+            return None, o.reason
+        series.append(o.values)
+        where = o.source
+    first = series[0]
+    for s in series[1:]:
+        if not s.index.equals(first.index):
+            return None, f"run {rid[:8]}: the sample sizes were scored on different pairs"
+    return (first if len(series) == 1 else sum(series[1:], first) / len(series)), where
+
+
+def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant: str, at: Any,
+          ref_cols: Sequence[Column], row_cols: Sequence[Column], source: Any, settings: StatsSettings) -> OrderingLine:
+    ref_cells = [table.cell(comp.ref, c) for c in ref_cols]
+    row_cells = [table.cell(comp.row, c) for c in row_cols]
+    line = OrderingLine(comp, metric, bench, variant, at,
+                        paper_ref=_mean([c.paper for c in ref_cells]), paper_row=_mean([c.paper for c in row_cells]))
+    ref_runs, row_runs = _per_run(ref_cells), _per_run(row_cells)
+    line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
+    if not ref_runs or not row_runs:
+        line.reason = _missing(ref_cells if not ref_runs else row_cells)
+        line.verdict = verdict(line.paper_diff, None)
+        return line
+    line.ours_ref = float(np.mean([v for _, v, _ in ref_runs.values()]))
+    line.ours_row = float(np.mean([v for _, v, _ in row_runs.values()]))
+    line.ours_diff = line.ours_row - line.ours_ref
+    by_seed_ref = {r.seed: v for r, v, _ in ref_runs.values()}
+    by_seed_row = {r.seed: v for r, v, _ in row_runs.values()}
+    common = [s for s in by_seed_row if s in by_seed_ref]
+    if len(common) > 1:
+        _, line.ours_std, line.n_seeds = mean_std([by_seed_row[s] - by_seed_ref[s] for s in common])
+    if source is None:
+        line.reason = "per-pair outcomes were not loaded"
+    else:
+        vecs: dict[str, list] = {"ref": [], "row": []}
+        wheres: list[str] = []
+        for side, runs in (("ref", ref_runs), ("row", row_runs)):
+            for rid, (_, _, kv) in runs.items():
+                s, where = _vector(source, rid, kv)
+                if s is None:
+                    line.reason = where
+                    break
+                vecs[side].append(s)
+                wheres.append(where)
+            if line.reason:
+                break
+        if not line.reason:
+            first = vecs["ref"][0]
+            if not all(s.index.equals(first.index) for s in vecs["ref"] + vecs["row"]):
+                line.reason = ("the runs compared were scored on different test pairs (data set or evaluation "
+                               "settings differ), so no paired interval")
+            else:
+                line.interval = paired_bootstrap(
+                    np.stack([s.to_numpy() for s in vecs["ref"]]), np.stack([s.to_numpy() for s in vecs["row"]]),
+                    first.index.get_level_values("scene"), n_boot=settings.n_boot, seed=settings.seed,
+                    level=settings.level)
+                line.ours_diff = line.interval.diff
+                line.source = "; ".join(dict.fromkeys(wheres))
+    line.verdict = verdict(line.paper_diff, line.interval)
+    return line
+
+
+def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | None = None) -> list[OrderingLine]:
+    """Every tested ordering of ``table`` (see module docstring). ``source``: an
+    :class:`~pcrcg.report.outcomes.OutcomeSource` (None: no intervals)."""
+    settings = settings or StatsSettings()
+    groups = _groups(table.spec.columns)
+    lines: list[OrderingLine] = []
+    for comp in table.spec.compare:
+        for (metric, bench, variant), cols in groups.items():
+            if metric not in settings.metrics:
+                continue
+            if comp.variant is not None:
+                if variant != comp.variant or (metric, bench, comp.ref_variant) not in groups:
+                    continue
+                ref_group = groups[(metric, bench, comp.ref_variant)]
+            else:
+                ref_group = cols
+            for at in _places(cols, settings):
+                row_cols = _select(cols, at)
+                by_n = {c.n_points: c for c in _select(ref_group, at)}
+                ref_cols = [by_n.get(c.n_points) for c in row_cols]
+                if not row_cols or any(c is None for c in ref_cols):
+                    continue
+                line = _line(table, comp, metric, bench, variant, at, ref_cols, row_cols,  # type: ignore[arg-type]
+                             source, settings)
+                if line.paper_diff is None and (not line.ref_runs or not line.row_runs):
+                    continue  # neither the paper nor we have both numbers: nothing to say
+                lines.append(line)
+    return lines
