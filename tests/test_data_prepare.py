@@ -118,7 +118,7 @@ def test_interrupted_generation_keeps_the_old_data_set(tmp_path, monkeypatch):
 
 def test_same_seed_same_bytes(tmp_path):
     cfg = SynthConfig(n_scenes=1, n_val=0, n_test=0, width=64, height=48, fragments_per_scene=2,
-                      frames_per_fragment=2, yaw_per_fragment_deg=30)
+                      frames_per_fragment=2)
     args = (0, 5, cfg, SensorModel(), FusionConfig(tsdf_voxel=0.05, fragment_voxel=0.05, min_weight=1), PairConfig(), True)
     generate_scene(str(tmp_path / "a"), *args)
     generate_scene(str(tmp_path / "b"), *args)

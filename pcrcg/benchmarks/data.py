@@ -48,7 +48,7 @@ def micro(profile: str) -> dict:
     rng = np.random.default_rng(0)
     room = make_room(rng)
     n = s["frames_per_fragment"]
-    poses = camera_path(room, n, s["yaw_per_fragment_deg"] / n, rng)
+    poses = camera_path(room, n, s["fragment_seconds"] / n, rng)
     K = intrinsics_for(s["width"], s["height"])
     r = RoomRenderer(room)
     t0 = time.perf_counter()

@@ -56,6 +56,8 @@ def fuse_frames(
     for color, depth, pose in zip(colors, depths, poses):
         if color.shape[:2] != depth.shape:
             raise ValueError(f"color {color.shape[:2]} and depth {depth.shape} differ in size")
+        if not np.any((depth > 0) & (depth < cfg.depth_max)):
+            continue  # nothing in range (a blank wall at arm's length, a window): TSDF would abort
         mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
         d_img = o3d.t.geometry.Image(o3c.Tensor(mm))
         c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, dtype=np.uint8)))

@@ -1,8 +1,9 @@
 """SynthMatch: the generated RGB-D registration benchmark in the 3DMatch layout.
 
-Per scene: a random furnished room (:mod:`pcrcg.data.synth.scene`), a hand-held camera path
-(:mod:`pcrcg.data.synth.camera`), frames ray-cast with a Kinect-like sensor model
-(:mod:`pcrcg.data.synth.render`) and written as PNGs in the 3DMatch RGB-D layout; then the same
+Per scene: a random furnished room (:mod:`pcrcg.data.synth.scene`), a hand-held scan at real
+speeds (:mod:`pcrcg.data.synth.camera`), frames ray-cast with a Kinect-like depth sensor and a
+consumer colour camera (auto-exposure, motion blur, noise, JPEG; :mod:`pcrcg.data.synth.render`)
+and written as PNGs in the 3DMatch RGB-D layout; then the same
 fusion and pairing code as real data (:mod:`pcrcg.data.build`). Scenes are independent and seeded
 by ``(seed, scene index)``, so they are generated in parallel and the output does not depend on
 the number of workers.
@@ -19,7 +20,7 @@ from pcrcg.data.build import SceneResult, build_scene
 from pcrcg.data.fusion import FusionConfig
 from pcrcg.data.layout import Layout, write_color, write_depth, write_matrix
 from pcrcg.data.pairs import PairConfig
-from pcrcg.data.synth.camera import _smooth, camera_path
+from pcrcg.data.synth.camera import ScanConfig, ScanPath, _smooth
 from pcrcg.data.synth.render import RoomRenderer, SensorModel
 from pcrcg.data.synth.scene import make_room
 from pcrcg.geometry import scale_intrinsics
@@ -37,7 +38,10 @@ class SynthConfig:
     height: int = 120
     fragments_per_scene: int = 8
     frames_per_fragment: int = 5
-    yaw_per_fragment_deg: float = 70.0
+    # a fragment spans what 50 frames at 30 fps of a real scan span (3DMatch's fragments), however
+    # many frames a profile renders of it
+    fragment_seconds: float = 50 / 30
+    walk_speed: float = 0.25  # m/s
     shadows: bool = True
 
 
@@ -75,27 +79,47 @@ def intrinsics_for(width: int, height: int) -> np.ndarray:
     return scale_intrinsics(K_640, width / 640.0, height / 480.0)
 
 
+def auto_exposure(previous: float | None, linear, dt: float, target: float = 0.18, tau: float = 0.4) -> float:
+    """The camera's exposure gain after a frame of linear radiance (H, W, 3): it moves towards
+    the gain that puts the image's mean at ``target`` with time constant ``tau`` seconds (so a
+    bright window or a dark corner is over- or under-exposed for a moment, as on real frames)."""
+    mean = float(np.mean(linear[linear.shape[0] // 4 : 3 * linear.shape[0] // 4])) + 1e-4
+    want = float(np.clip(target / mean, 0.05, 20.0))
+    if previous is None:
+        return want
+    a = 1.0 - np.exp(-dt / tau)
+    return float(np.exp((1 - a) * np.log(previous) + a * np.log(want)))
+
+
 def render_scene(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel) -> list[int]:
     """Render one scene's frames into ``<root>/rgbd/<scene>/seq-01``; returns the frame ids."""
     rng = np.random.default_rng([seed, index])
     scene = scene_name(index)
     room = make_room(rng)
     n_frames = cfg.fragments_per_scene * cfg.frames_per_fragment
-    poses = camera_path(room, n_frames, cfg.yaw_per_fragment_deg / cfg.frames_per_fragment, rng)
+    dt = cfg.fragment_seconds / cfg.frames_per_fragment
+    path = ScanPath(room, rng, ScanConfig(walk_speed=cfg.walk_speed))
+    times = np.arange(n_frames) * dt
+    poses = path.pose(times)
     K = intrinsics_for(cfg.width, cfg.height)
     renderer = RoomRenderer(room, sensor)
-    t = np.arange(n_frames, dtype=np.float64)
-    period = max(4.0, 2.0 * cfg.frames_per_fragment)
-    exposure = np.exp(0.18 * _smooth(rng, t, period * 3) + rng.normal(0, 0.1))
-    flicker = 1.0 + 0.06 * np.stack([_smooth(rng, t, period) for _ in range(len(room.lights))], 1)
+    flicker = 1.0 + 0.04 * np.stack([_smooth(rng, times, 3.0) for _ in range(len(room.lights))], 1)
     seq_dir = layout.rgbd_dir(scene) / SEQ
     seq_dir.mkdir(parents=True, exist_ok=True)
     write_matrix(layout.intrinsics(scene), K)
+    gain = None
     for k in range(n_frames):
         if _orphaned():
             raise SystemExit(f"parent process gone; stopping {scene}")
-        color, depth, _ = renderer.render(poses[k], K, cfg.width, cfg.height, rng, float(exposure[k]),
-                                          flicker[k], shadows=cfg.shadows)
+        rad = renderer.radiance(poses[k], K, cfg.width, cfg.height, flicker[k], shadows=cfg.shadows)
+        gain = auto_exposure(gain, rad.linear, dt)
+        blur = None
+        if sensor.exposure_time > 0:
+            half = 0.5 * sensor.exposure_time
+            p0, p1 = path.pose(np.array([times[k] - half, times[k] + half]))
+            blur = renderer.image_motion(p0, p1, K, rad.depth)
+        color = renderer.expose(rad.linear, gain, rng, blur)
+        depth = renderer.sensor_depth(rad, rng)
         prefix = layout.frame_prefix(scene, SEQ, k)
         write_color(str(prefix) + ".color.png", color)
         write_depth(str(prefix) + ".depth.png", depth)

@@ -1,272 +1,428 @@
-"""Procedural indoor rooms made of textured rectangles ("panels").
+"""Procedural indoor rooms like 3DMatch's: kitchens, offices, bedrooms, living rooms, conference
+rooms and corridors.
 
-A room is a box (floor, ceiling, four walls) holding furniture-like solids (wall units, tables
-with legs, low boxes, clutter on tables, columns and pipes by the walls, objects on the floor; many
-turned off the room's axes so that low-overlap pairs are not made of interchangeable right angles)
-and flat textured posters and rugs a few millimetres in
-front of walls and floor: surfaces where geometry is ambiguous and color is not.
+A room is a floor plan that is not always a box (L-shapes, alcoves), walls with doorways onto a
+corridor and windows with reveals and bars, columns, skirting boards; furniture made of parts
+(:mod:`pcrcg.data.synth.furniture`) along the walls and in the room at any yaw, clutter on every
+top and on the floor, posters, pictures and printed notices on the walls, rugs on the floor.
+Placement uses an occupancy grid of the floor, which also tells the camera where a person can
+walk.
 
-Coordinates: metres, z up, the room spans [0, W] x [0, D] x [0, H].
+Coordinates: metres, z up; the room's bounding box spans [0, W] x [0, D] x [0, H].
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from pcrcg.data.synth.textures import Texture, random_texture
+from pcrcg.data.synth import furniture as F
+from pcrcg.data.synth.panel import Panel, Room
+from pcrcg.data.synth.shapes import box, compose, flat, frustum, placement
+from pcrcg.data.synth.textures import Texture, image_texture, material, random_texture
+
+__all__ = ["Panel", "Room", "make_room", "ROOM_TYPES"]
+
+ROOM_TYPES = ("kitchen", "office", "bedroom", "living", "conference", "corridor")
+CELL = 0.05  # occupancy grid (m)
 
 
 @dataclass
-class Panel:
-    """A textured rectangle: ``origin + s * axis_u + t * axis_v`` for s, t in [0, 1]."""
+class Wall:
+    """A straight wall from ``a`` to ``b`` (2D), the room on its left."""
 
-    origin: np.ndarray  # (3,)
-    axis_u: np.ndarray  # (3,) edge vector (length = width)
-    axis_v: np.ndarray  # (3,) edge vector (length = height)
-    texture: Texture
-    kind: str
+    a: np.ndarray
+    b: np.ndarray
 
     @property
-    def normal(self) -> np.ndarray:
-        n = np.cross(self.axis_u, self.axis_v)
-        return n / np.linalg.norm(n)
+    def length(self) -> float:
+        return float(np.linalg.norm(self.b - self.a))
+
+    @property
+    def along(self) -> np.ndarray:
+        return (self.b - self.a) / self.length
+
+    @property
+    def inward(self) -> np.ndarray:
+        t = self.along
+        return np.array([-t[1], t[0]])
+
+    def frame(self, s: float, off: float = 0.0, z: float = 0.0) -> np.ndarray:
+        """Placement at distance ``s`` along the wall, ``off`` into the room: the object's -y (front)
+        faces into the room, its +y the wall."""
+        p = self.a + self.along * s + self.inward * off
+        yaw = np.arctan2(self.along[1], self.along[0])
+        return placement(p[0], p[1], z, yaw)
 
 
-@dataclass
-class Room:
-    size: np.ndarray  # (3,) W, D, H
-    panels: list[Panel] = field(default_factory=list)
-    lights: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (L, 3) positions
-    light_power: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (L,)
-    ambient: float = 0.3
-    keepout: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # boxes (min, max)
-
-    def mesh_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Vertices (4P, 3) float32 and triangles (2P, 3) int32; triangle 2p, 2p+1 belong to panel p."""
-        verts, tris = [], []
-        for p, pan in enumerate(self.panels):
-            o, a, b = pan.origin, pan.axis_u, pan.axis_v
-            verts += [o, o + a, o + a + b, o + b]
-            k = 4 * p
-            tris += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
-        return np.asarray(verts, np.float32), np.asarray(tris, np.int32)
+# ------------------------------------------------------------------ floor plans
 
 
-def _box_panels(lo: np.ndarray, hi: np.ndarray, tex: Texture, kind: str, skip_bottom: bool = True) -> list[Panel]:
-    """Outward-facing faces of an axis-aligned box (the bottom face is skipped by default)."""
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    dx, dy, dz = hi - lo
-    X, Y, Z = np.eye(3)
-    faces = [
-        Panel(np.array([x0, y0, z1]), X * dx, Y * dy, tex, kind),  # top, normal +z
-        Panel(np.array([x0, y0, z0]), X * dx, Z * dz, tex, kind),  # normal -y
-        Panel(np.array([x1, y1, z0]), -X * dx, Z * dz, tex, kind),  # normal +y
-        Panel(np.array([x0, y1, z0]), -Y * dy, Z * dz, tex, kind),  # normal -x
-        Panel(np.array([x1, y0, z0]), Y * dy, Z * dz, tex, kind),  # normal +x
-    ]
-    if not skip_bottom:
-        faces.append(Panel(np.array([x0, y1, z0]), X * dx, -Y * dy, tex, kind))
-    return faces
+def _floor_plan(rng: np.random.Generator, kind: str) -> tuple[list[np.ndarray], list[tuple[float, float, float, float]]]:
+    """The plan as a counter-clockwise polygon (V, 2) and the rectangles (x0, y0, x1, y1) that tile it."""
+    if kind == "corridor":
+        W, D = rng.uniform(2.2, 3.0), rng.uniform(6.0, 9.0)
+    elif kind == "conference":
+        W, D = rng.uniform(5.5, 8.0), rng.uniform(4.5, 7.0)
+    else:
+        W, D = rng.uniform(4.0, 7.0), rng.uniform(3.6, 6.0)
+    shape = "box" if kind == "corridor" else str(rng.choice(["box", "L", "alcove"], p=[0.4, 0.35, 0.25]))
+    if shape == "L":
+        cw, cd = W * rng.uniform(0.3, 0.45), D * rng.uniform(0.3, 0.45)
+        poly = [(0, 0), (W, 0), (W, D - cd), (W - cw, D - cd), (W - cw, D), (0, D)]
+        rects = [(0, 0, W, D - cd), (0, D - cd, W - cw, D)]
+    elif shape == "alcove":
+        a0 = rng.uniform(0.5, W - 2.0)
+        a1 = a0 + rng.uniform(1.2, min(2.5, W - a0 - 0.3))
+        ad = rng.uniform(0.6, 1.2)
+        poly = [(0, 0), (W, 0), (W, D), (a1, D), (a1, D + ad), (a0, D + ad), (a0, D), (0, D)]
+        rects = [(0, 0, W, D), (a0, D, a1, D + ad)]
+    else:
+        poly = [(0, 0), (W, 0), (W, D), (0, D)]
+        rects = [(0, 0, W, D)]
+    return [np.asarray(p, float) for p in poly], rects
 
 
-def _yawed_box_panels(center: np.ndarray, size: np.ndarray, z0: float, yaw: float, tex: Texture,
-                      kind: str) -> tuple[list[Panel], np.ndarray, np.ndarray]:
-    """A box of ``size`` (w, d, h) standing at height ``z0``, turned by ``yaw`` (rad) about z around
-    ``center`` (x, y). Returns its five outward faces (top and sides) and its axis-aligned bounds."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    u = np.array([c, s, 0.0]) * size[0]
-    v = np.array([-s, c, 0.0]) * size[1]
-    Z = np.array([0.0, 0.0, size[2]])
-    o = np.array([center[0], center[1], z0]) - 0.5 * (u + v)
-    panels = [
-        Panel(o + Z, u, v, tex, kind),  # top, normal +z
-        Panel(o, u, Z, tex, kind),  # normal -v
-        Panel(o + u + v, -u, Z, tex, kind),  # normal +v
-        Panel(o + v, -v, Z, tex, kind),  # normal -u
-        Panel(o + u, v, Z, tex, kind),  # normal +u
-    ]
-    corners = np.stack([o, o + u, o + v, o + u + v])
-    lo = np.array([*corners[:, :2].min(0), z0])
-    hi = np.array([*corners[:, :2].max(0), z0 + size[2]])
-    return panels, lo, hi
+class Floor:
+    """Occupancy grid of the floor plan: which cells are inside the room and which are taken."""
+
+    def __init__(self, rects, size: np.ndarray):
+        self.gx, self.gy = int(np.ceil(size[0] / CELL)) + 1, int(np.ceil(size[1] / CELL)) + 1
+        cx = (np.arange(self.gx) + 0.5) * CELL
+        cy = (np.arange(self.gy) + 0.5) * CELL
+        X, Y = np.meshgrid(cx, cy, indexing="ij")
+        self.inside = np.zeros((self.gx, self.gy), bool)
+        for x0, y0, x1, y1 in rects:
+            self.inside |= (X > x0) & (X < x1) & (Y > y0) & (Y < y1)
+        self.taken = np.zeros_like(self.inside)
+        self.tall = np.zeros_like(self.inside)  # under things a hand-held camera cannot pass over
+        self.X, self.Y = X, Y
+
+    def _cells(self, M: np.ndarray, w: float, d: float, margin: float) -> np.ndarray:
+        """Mask of the cells under a w x d footprint at placement M, grown by ``margin``."""
+        c, s = M[0, 0], M[1, 0]
+        dx, dy = self.X - M[0, 3], self.Y - M[1, 3]
+        lu, lv = c * dx + s * dy, -s * dx + c * dy
+        return (np.abs(lu) < w / 2 + margin) & (np.abs(lv) < d / 2 + margin)
+
+    def free(self, M: np.ndarray, w: float, d: float, margin: float = 0.03) -> bool:
+        m = self._cells(M, w, d, margin)
+        inner = self._cells(M, w, d, -0.01)
+        return bool(np.all(self.inside[inner]) and not np.any(self.taken[m]) and m.any())
+
+    def take(self, M: np.ndarray, w: float, d: float, h: float = 2.0) -> None:
+        m = self._cells(M, w, d, 0.0)
+        self.taken |= m
+        if h > 1.1:
+            self.tall |= m
+
+    def walkable(self, clearance: float) -> np.ndarray:
+        """Cells at least ``clearance`` from walls and tall furniture: where a hand-held camera at
+        1.2-1.7 m can be (over tables and beds, not through shelves)."""
+        from scipy.ndimage import distance_transform_edt
+
+        blocked = ~self.inside | self.tall
+        return distance_transform_edt(~blocked) * CELL >= clearance
 
 
-def _prism_panels(center: np.ndarray, radius: float, z0: float, z1: float, n_sides: int, phase: float,
-                  tex: Texture, kind: str) -> list[Panel]:
-    """The side faces of a regular ``n_sides``-gon prism (a column, a pipe) from ``z0`` to ``z1``."""
-    ang = phase + 2 * np.pi * np.arange(n_sides + 1) / n_sides
-    ring = np.stack([center[0] + radius * np.cos(ang), center[1] + radius * np.sin(ang), np.full(n_sides + 1, z0)], 1)
-    up = np.array([0.0, 0.0, z1 - z0])
-    # counter-clockwise ring seen from above: (edge, up) has an outward normal
-    return [Panel(ring[k], ring[k + 1] - ring[k], up, tex, kind) for k in range(n_sides)]
+# ------------------------------------------------------------------ walls, doors, windows
 
 
-def _overlaps(lo, hi, boxes, margin=0.05) -> bool:
-    for blo, bhi in boxes:
-        if np.all(lo[:2] < bhi[:2] + margin) and np.all(hi[:2] > blo[:2] - margin):
-            return True
-    return False
+def _wall_panels(room: Room, rng: np.random.Generator, wall: Wall, H: float, tex: Texture, floor: Floor) -> None:
+    """A wall with perhaps a doorway or a window, and a skirting board."""
+    L = wall.length
+    X = np.array([*wall.along, 0.0])
+    Z = np.array([0.0, 0.0, 1.0])
+    n = np.array([*wall.inward, 0.0])
+    a3 = np.array([*wall.a, 0.0])
+    openings: list[tuple[float, float, float, float, str]] = []  # s0, s1, z0, z1, kind
+    if L > 2.0 and rng.random() < 0.3:
+        w = rng.uniform(0.85, 1.0)
+        s0 = rng.uniform(0.3, L - w - 0.3)
+        openings.append((s0, s0 + w, 0.0, 2.05, "door"))
+    if L > 2.2 and rng.random() < 0.4:
+        w = rng.uniform(0.9, min(2.0, L - 1.0))
+        s0 = rng.uniform(0.4, L - w - 0.4)
+        if all(s0 > o[1] + 0.3 or s0 + w < o[0] - 0.3 for o in openings):
+            z0 = rng.uniform(0.8, 1.0)
+            openings.append((s0, s0 + w, z0, min(H - 0.25, z0 + rng.uniform(1.1, 1.5)), "window"))
+    # split the wall into rectangles around the openings (columns of wall between openings)
+    cuts = sorted(openings)
+    s = 0.0
+    for s0, s1, z0, z1, _ in cuts:
+        if s0 > s:
+            room.panels.append(Panel(a3 + X * s, X * (s0 - s), Z * H, tex, "wall"))
+        if z0 > 0:
+            room.panels.append(Panel(a3 + X * s0, X * (s1 - s0), Z * z0, tex, "wall"))
+        room.panels.append(Panel(a3 + X * s0 + Z * z1, X * (s1 - s0), Z * (H - z1), tex, "wall"))
+        s = s1
+    if s < L:
+        room.panels.append(Panel(a3 + X * s, X * (L - s), Z * H, tex, "wall"))
+    frame = material(rng, "paint" if rng.random() < 0.5 else "wood")
+    for s0, s1, z0, z1, kind in cuts:
+        depth = 0.15 if kind == "window" else 0.12
+        o = a3 + X * s0
+        B = -n * depth  # reveals go into the wall
+        room.panels += [Panel(o + Z * z0, X * (s1 - s0), B, frame, "wall"),  # sill / threshold
+                        Panel(o + Z * z1, B, X * (s1 - s0), frame, "wall"),  # head
+                        Panel(o + Z * z0, B, Z * (z1 - z0), frame, "wall"),  # jambs
+                        Panel(o + X * (s1 - s0) + Z * z0, Z * (z1 - z0), B, frame, "wall")]
+        if kind == "window":
+            back = o + B
+            room.panels.append(Panel(back + Z * z0, X * (s1 - s0), Z * (z1 - z0), _sky(rng), "sky"))
+            bar = material(rng, "paint")
+            mid = 0.5 * (s0 + s1)
+            M = placement(*(np.array([*wall.a, 0]) + X * mid - n * (depth - 0.02))[:2], z0, np.arctan2(X[1], X[0]))
+            room.panels += box(M, (0.04, 0.04, z1 - z0), bar, "wall")
+            room.panels += box(compose(M, 0, 0, 0.5 * (z1 - z0)), (s1 - s0, 0.04, 0.04), bar, "wall")
+        else:  # a short corridor beyond the door: floor, two side walls, back wall, ceiling
+            cd = rng.uniform(1.0, 1.8)
+            ctex = material(rng, "paint")
+            back = o - n * (depth + cd)
+            w = s1 - s0
+            room.panels += [Panel(o + B, X * w, -n * cd, material(rng, "floor"), "floor"),
+                            Panel(back, X * w, Z * z1, ctex, "wall"),
+                            Panel(o + B, -n * cd, Z * z1, ctex, "wall"),
+                            Panel(o + B + X * w, -n * cd, Z * z1, ctex, "wall"),
+                            Panel(o + B + Z * z1, X * w, -n * cd, ctex, "ceiling")]
+            # keep the doorway clear of furniture
+            M = wall.frame(0.5 * (s0 + s1), 0.5)
+            floor.take(M, s1 - s0 + 0.2, 1.0, 0.0)
+    # skirting board, broken at doors
+    skirt = material(rng, "wood" if rng.random() < 0.5 else "paint")
+    s = 0.0
+    for s0, s1, z0, _, kind in cuts + [(L, L, 0.0, 0.0, "end")]:
+        if kind in ("door", "end") and s0 - s > 0.05:
+            M = wall.frame(0.5 * (s + s0), 0.006)
+            room.panels += box(M, (s0 - s, 0.012, 0.08), skirt, "wall")
+        if kind == "door":
+            s = s1
 
 
-def make_room(rng: np.random.Generator) -> Room:
-    """A random furnished room."""
-    W, D = rng.uniform(3.5, 6.0, size=2)
+def _sky(rng: np.random.Generator) -> Texture:
+    """What a window shows: bright, washed out (no depth: glass)."""
+    base = rng.uniform(0.75, 1.0, 3)
+    return Texture("noise", np.stack([base, base * 0.9, base * 0.8]), 0.5, 0.0, int(rng.integers(0, 2**31 - 1)), 0.02)
+
+
+# ------------------------------------------------------------------ furniture placement
+
+_WALL_ITEMS = {
+    "kitchen": (["counter", "fridge", "shelf", "cabinet"], [0.55, 0.15, 0.15, 0.15]),
+    "office": (["desk", "shelf", "cabinet", "sofa"], [0.45, 0.3, 0.2, 0.05]),
+    "bedroom": (["bed", "shelf", "cabinet", "desk"], [0.35, 0.25, 0.25, 0.15]),
+    "living": (["sofa", "shelf", "cabinet", "desk"], [0.4, 0.3, 0.25, 0.05]),
+    "conference": (["cabinet", "shelf", "desk"], [0.4, 0.4, 0.2]),
+    "corridor": (["cabinet", "shelf"], [0.5, 0.5]),
+}
+
+
+def _wall_item(rng, kind: str, M: np.ndarray) -> F.Item:
+    if kind == "counter":
+        return F.cabinet(rng, M, w=rng.uniform(0.8, 2.4), h=0.87, counter=True)
+    return {"fridge": F.fridge, "shelf": F.bookshelf, "cabinet": F.cabinet, "desk": F.desk, "sofa": F.sofa,
+            "bed": F.bed}[kind](rng, M)
+
+
+def _place_along_walls(room: Room, rng, walls: list[Wall], floor: Floor, rtype: str, H: float, tops: list) -> None:
+    names, p = _WALL_ITEMS[rtype]
+    for wall in walls:
+        s = rng.uniform(0.05, 0.6)
+        while s < wall.length - 0.4:
+            if rng.random() < 0.25:
+                s += rng.uniform(0.3, 1.0)
+                continue
+            kind = str(rng.choice(names, p=p))
+            # build at the origin first to know the size, then place
+            probe = _wall_item(np.random.default_rng(int(rng.integers(0, 2**31))), kind, np.eye(4))
+            w, d = probe.size[0], probe.size[1]
+            if s + w > wall.length - 0.02:
+                break
+            jitter = rng.normal(0, 0.03)
+            M = wall.frame(s + w / 2, d / 2 + 0.01 + abs(rng.normal(0, 0.01)))
+            M = M @ placement(0, 0, 0, np.pi + jitter)  # front into the room
+            if floor.free(M, w, d, 0.02):
+                item = _wall_item(rng, kind, M)
+                room.panels += item.panels
+                floor.take(M, w, d, item.size[2])
+                tops += item.tops
+                if kind == "counter" and rng.random() < 0.7 and H > 2.3:  # upper cabinets above
+                    Mu = wall.frame(s + w / 2, 0.17, 1.45) @ placement(0, 0, 0, np.pi)
+                    room.panels += F.wall_cabinet(rng, Mu, w).panels
+                if kind == "desk" and rng.random() < 0.8:  # its chair
+                    Mc = M @ placement(rng.normal(0, 0.15), -d / 2 - 0.15, 0, np.pi + rng.normal(0, 0.5))
+                    if floor.free(Mc, 0.5, 0.5, 0.0):
+                        room.panels += F.chair(rng, Mc).panels
+                        floor.take(Mc, 0.5, 0.5, 0.9)
+                s += w + rng.uniform(0.02, 0.3)
+            else:
+                s += 0.3
+
+
+def _random_spot(rng, floor: Floor, w: float, d: float, margin: float, tries: int = 30) -> np.ndarray | None:
+    ix, iy = np.nonzero(floor.inside & ~floor.taken)
+    if len(ix) == 0:
+        return None
+    for _ in range(tries):
+        k = int(rng.integers(0, len(ix)))
+        M = placement((ix[k] + 0.5) * CELL, (iy[k] + 0.5) * CELL, 0, rng.uniform(0, 2 * np.pi))
+        if floor.free(M, w, d, margin):
+            return M
+    return None
+
+
+def _place_interior(room: Room, rng, floor: Floor, rtype: str, tops: list) -> None:
+    plan = {
+        "kitchen": [("dining", 0.8), ("plant", 0.5), ("bin", 0.8), ("carton", 1.0)],
+        "office": [("dining", 0.4), ("chair", 1.0), ("plant", 0.8), ("bin", 1.0), ("carton", 1.5)],
+        "bedroom": [("chair", 0.5), ("lamp", 0.6), ("plant", 0.5), ("carton", 1.5), ("bin", 0.5)],
+        "living": [("coffee", 1.0), ("armchair", 0.8), ("lamp", 0.7), ("plant", 1.0), ("carton", 1.0)],
+        "conference": [("conference", 1.0), ("plant", 0.6), ("bin", 0.5), ("carton", 0.6)],
+        "corridor": [("plant", 0.5), ("bin", 0.5), ("carton", 1.0)],
+    }[rtype]
+    for what, rate in plan:
+        for _ in range(int(rng.poisson(rate))):
+            _place_one(room, rng, floor, what, tops)
+
+
+def _place_one(room: Room, rng, floor: Floor, what: str, tops: list) -> None:
+    if what in ("dining", "conference", "coffee"):
+        if what == "conference":
+            w, d = rng.uniform(2.0, 3.2), rng.uniform(1.0, 1.3)
+        elif what == "coffee":
+            w, d = rng.uniform(0.6, 1.1), rng.uniform(0.45, 0.7)
+        else:
+            w, d = rng.uniform(0.9, 1.6), rng.uniform(0.7, 0.95)
+        M = _random_spot(rng, floor, w + 1.0, d + 1.0, 0.1)
+        if M is None:
+            return
+        it = F.table(rng, M, w, d)
+        if what == "coffee":  # a low table: squash it
+            S = np.diag([1.0, 1.0, 0.55, 1.0])
+            it = F.table(rng, M @ S, w, d)
+            it.tops = [F.Surface(M @ placement(0, 0, 0.42), w, d)]
+        room.panels += it.panels
+        floor.take(M, w, d, 0.8)
+        tops += it.tops
+        if room.focus is None:
+            room.focus = M[:2, 3].copy()
+        if what != "coffee":  # chairs around it, pushed out and turned
+            n_side = max(1, int(w / 0.6))
+            for side in (-1, 1):
+                for k in range(n_side):
+                    if rng.random() < 0.25:
+                        continue
+                    x = -w / 2 + w / n_side * (k + 0.5)
+                    Mc = M @ placement(x + rng.normal(0, 0.05), side * (d / 2 + rng.uniform(0.1, 0.35)), 0,
+                                       (0 if side > 0 else np.pi) + rng.normal(0, 0.35))
+                    if floor.free(Mc, 0.48, 0.48, 0.0):
+                        room.panels += F.chair(rng, Mc).panels
+                        floor.take(Mc, 0.48, 0.48, 0.9)
+        return
+    make = {"chair": F.chair, "armchair": F.sofa, "lamp": F.lamp, "plant": F.plant, "bin": F.bin_, "carton": F.carton}[what]
+    probe = make(np.random.default_rng(int(rng.integers(0, 2**31))), np.eye(4))
+    w, d = probe.size[:2]
+    if what == "armchair":
+        w, d = 1.0, 0.95
+    M = _random_spot(rng, floor, w, d, 0.05)
+    if M is None:
+        return
+    it = make(rng, M)
+    room.panels += it.panels
+    floor.take(M, it.size[0], it.size[1], it.size[2])
+
+
+# ------------------------------------------------------------------ wall decoration
+
+
+def _decorate_walls(room: Room, rng, walls: list[Wall], H: float) -> None:
+    """Posters, pictures, notices and a whiteboard, a few millimetres off the wall."""
+    for wall in walls:
+        for _ in range(int(rng.poisson(0.45 * wall.length))):
+            w, h = rng.uniform(0.25, 1.2), rng.uniform(0.25, 0.9)
+            if w > wall.length - 0.2:
+                continue
+            s = rng.uniform(0.1 + w / 2, wall.length - 0.1 - w / 2)
+            z = rng.uniform(1.0, max(1.05, H - h - 0.3))
+            M = wall.frame(s, 0.004 + 0.01 * (rng.random() < 0.4), z)
+            kind = rng.random()
+            if kind < 0.65:
+                tex = image_texture(rng, (w, h))
+            elif kind < 0.8:  # a whiteboard
+                tex = material(rng, "plastic")
+                tex.colors = np.clip(tex.colors * 0.1 + 0.88, 0, 1)
+            else:
+                tex = random_texture(rng, "poster")
+            room.panels.append(flat(M, w, h, tex, "poster"))
+            if rng.random() < 0.4:  # a frame around it
+                fr = material(rng, "wood")
+                for dz, ww, hh in ((0, w + 0.04, 0.02), (h, w + 0.04, 0.02)):
+                    room.panels += box(compose(M, 0, 0.01, dz - 0.01), (ww, 0.02, hh), fr, "poster")
+                for dx in (-w / 2, w / 2):
+                    room.panels += box(compose(M, dx, 0.01, 0), (0.02, 0.02, h), fr, "poster")
+
+
+# ------------------------------------------------------------------ the room
+
+
+def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
+    """A random furnished room of ``room_type`` (one of :data:`ROOM_TYPES`; random when None)."""
+    rtype = room_type or str(rng.choice(ROOM_TYPES, p=[0.22, 0.24, 0.16, 0.18, 0.1, 0.1]))
+    poly, rects = _floor_plan(rng, rtype)
+    W = max(p[0] for p in poly)
+    D = max(p[1] for p in poly)
     H = rng.uniform(2.5, 3.0)
     room = Room(size=np.array([W, D, H]))
+    floor = Floor(rects, room.size)
     X, Y, Z = np.eye(3)
-    wall_tex = random_texture(rng, "wall")
-    # floor (normal +z), ceiling (normal -z), walls facing inward
-    room.panels += [
-        Panel(np.zeros(3), X * W, Y * D, random_texture(rng, "floor"), "floor"),
-        Panel(np.array([0, D, H]), X * W, -Y * D, random_texture(rng, "ceiling"), "ceiling"),
-        Panel(np.array([0, 0, 0]), Z * H, X * W, wall_tex, "wall"),  # y=0, normal +y
-        Panel(np.array([W, D, 0]), Z * H, -X * W, wall_tex if rng.random() < 0.5 else random_texture(rng, "wall"), "wall"),
-        Panel(np.array([0, D, 0]), Z * H, -Y * D, random_texture(rng, "wall"), "wall"),  # x=0, normal +x
-        Panel(np.array([W, 0, 0]), Z * H, Y * D, wall_tex, "wall"),  # x=W, normal -x
-    ]
-    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    ftex, ctex = material(rng, "floor"), material(rng, "paint")
+    for x0, y0, x1, y1 in rects:
+        room.panels.append(Panel(np.array([x0, y0, 0]), X * (x1 - x0), Y * (y1 - y0), ftex, "floor"))
+        room.panels.append(Panel(np.array([x0, y1, H]), X * (x1 - x0), -Y * (y1 - y0), ctex, "ceiling"))
+    walls = [Wall(poly[k], poly[(k + 1) % len(poly)]) for k in range(len(poly))]
+    main_tex = material(rng, "wall")
+    accent = material(rng, "wall")
+    for k, wall in enumerate(walls):
+        _wall_panels(room, rng, wall, H, accent if rng.random() < 0.25 else main_tex, floor)
 
-    # wall units: cabinets, shelves, wardrobes against the walls
-    for _ in range(int(rng.integers(2, 6))):
-        for _try in range(20):
-            wall = int(rng.integers(0, 4))
-            w, d, h = rng.uniform(0.6, 1.8), rng.uniform(0.3, 0.6), rng.uniform(0.7, 2.2)
-            if wall in (0, 1):  # along x at y=0 or y=D
-                x0 = rng.uniform(0.05, W - w - 0.05)
-                y0 = 0.0 if wall == 0 else D - d
-                lo, hi = np.array([x0, y0, 0]), np.array([x0 + w, y0 + d, h])
-            else:
-                y0 = rng.uniform(0.05, D - w - 0.05)
-                x0 = 0.0 if wall == 2 else W - d
-                lo, hi = np.array([x0, y0, 0]), np.array([x0 + d, y0 + w, h])
-            if not _overlaps(lo, hi, boxes):
-                boxes.append((lo, hi))
-                room.panels += _box_panels(lo, hi, random_texture(rng, "furniture"), "furniture")
-                if rng.random() < 0.7:  # a poster on the unit's front
-                    _add_front_poster(room, rng, lo, hi, wall)
-                break
+    # columns: square or round, free-standing or by a wall
+    for _ in range(int(rng.poisson(0.6))):
+        r = rng.uniform(0.12, 0.3)
+        M = _random_spot(rng, floor, 2 * r, 2 * r, 0.05)
+        if M is not None:
+            tex = material(rng, "paint")
+            room.panels += frustum(M, r, r, H, int(rng.choice([4, 16, 24])), tex, "wall", top=False)
+            floor.take(M, 2 * r, 2 * r, H)
 
-    # interior: tables with legs and clutter, low boxes (sofas, beds, stools); all < 1.1 m high
-    cx, cy = W / 2, D / 2
-    for _ in range(int(rng.integers(2, 5))):
-        for _try in range(20):
-            w, d = rng.uniform(0.5, 1.8), rng.uniform(0.5, 1.2)
-            x0 = rng.uniform(0.7, W - w - 0.7)
-            y0 = rng.uniform(0.7, D - d - 0.7)
-            lo2, hi2 = np.array([x0, y0, 0]), np.array([x0 + w, y0 + d, 0])
-            if _overlaps(lo2, hi2, boxes, margin=0.3):
-                continue
-            tex = random_texture(rng, "furniture")
-            if rng.random() < 0.55:  # table
-                ht = rng.uniform(0.68, 0.8)
-                top_lo, top_hi = np.array([x0, y0, ht - 0.04]), np.array([x0 + w, y0 + d, ht])
-                room.panels += _box_panels(top_lo, top_hi, tex, "furniture", skip_bottom=False)
-                leg = 0.05
-                for lx, ly in ((x0, y0), (x0 + w - leg, y0), (x0, y0 + d - leg), (x0 + w - leg, y0 + d - leg)):
-                    room.panels += _box_panels(np.array([lx, ly, 0]), np.array([lx + leg, ly + leg, ht - 0.04]), tex, "furniture")
-                for _c in range(int(rng.integers(0, 4))):  # clutter on the table
-                    s = rng.uniform(0.08, 0.35, size=3)
-                    s[:2] = np.minimum(s[:2], [w * 0.45, d * 0.45])
-                    px = rng.uniform(x0, x0 + w - s[0])
-                    py = rng.uniform(y0, y0 + d - s[1])
-                    room.panels += _box_panels(np.array([px, py, ht]), np.array([px + s[0], py + s[1], ht + s[2]]),
-                                               random_texture(rng, "poster" if rng.random() < 0.4 else "furniture"), "furniture")
-            elif rng.random() < 0.6:  # low solid turned off the room's axes (armchair, crate, bed)
-                h = rng.uniform(0.35, 1.0)
-                yaw = rng.uniform(-0.7, 0.7)
-                faces, blo, bhi = _yawed_box_panels(np.array([x0 + w / 2, y0 + d / 2]), np.array([w, d, h]) * 0.8,
-                                                    0.0, yaw, tex, "furniture")
-                room.panels += faces
-                if rng.random() < 0.5:  # something smaller on it, turned again
-                    s2 = rng.uniform(0.15, 0.4, size=3)
-                    faces2, _, _ = _yawed_box_panels(np.array([x0 + w / 2, y0 + d / 2]) + rng.uniform(-0.1, 0.1, 2), s2, h,
-                                                     yaw + rng.uniform(-0.8, 0.8), random_texture(rng, "furniture"), "furniture")
-                    room.panels += faces2
-            else:  # low solid
-                h = rng.uniform(0.35, 1.0)
-                room.panels += _box_panels(np.array([x0, y0, 0]), np.array([x0 + w, y0 + d, h]), tex, "furniture")
-                if rng.random() < 0.4:  # a second, smaller block on top (backrest, pillow)
-                    h2 = rng.uniform(0.1, 0.3)
-                    room.panels += _box_panels(np.array([x0, y0, h]), np.array([x0 + w, y0 + min(d, 0.25), min(h + h2, 1.1)]),
-                                               random_texture(rng, "furniture"), "furniture")
-            boxes.append((lo2, hi2 + np.array([0, 0, 1.1])))
-            break
-
-    # things that break the room's symmetry: columns and pipes by the walls, objects on the floor at
-    # random angles (the camera walks >= 0.8 m from the walls and looks across the room)
-    for _ in range(int(rng.integers(1, 4))):
-        wall = int(rng.integers(0, 4))
-        r = rng.uniform(0.06, 0.22)
-        off = rng.uniform(r + 0.02, 0.6)
-        along = rng.uniform(0.4, (W if wall in (0, 1) else D) - 0.4)
-        c = {0: (along, off), 1: (along, D - off), 2: (off, along), 3: (W - off, along)}[wall]
-        c = np.asarray(c)
-        if _overlaps(c - r, c + r, boxes, margin=0.02):
-            continue
-        top = H if rng.random() < 0.6 else rng.uniform(0.8, 1.9)
-        n_sides = int(rng.choice([4, 6, 8, 12]))
-        room.panels += _prism_panels(c, r, 0.0, top, n_sides, rng.uniform(0, np.pi), random_texture(rng, "furniture"), "furniture")
-        boxes.append((np.array([c[0] - r, c[1] - r, 0]), np.array([c[0] + r, c[1] + r, top])))
-    for _ in range(int(rng.integers(3, 8))):
-        for _try in range(10):
-            size = np.array([rng.uniform(0.15, 0.6), rng.uniform(0.15, 0.6), rng.uniform(0.1, 0.7)])
-            c = np.array([rng.uniform(0.4, W - 0.4), rng.uniform(0.4, D - 0.4)])
-            faces, blo, bhi = _yawed_box_panels(c, size, 0.0, rng.uniform(0, np.pi / 2),
-                                                random_texture(rng, "poster" if rng.random() < 0.3 else "furniture"), "furniture")
-            if _overlaps(blo, bhi, boxes, margin=0.1):
-                continue
-            room.panels += faces
-            boxes.append((blo, bhi))
-            break
-
-    # posters on the walls, rugs on the floor: flat, 3 mm off the surface
-    for _ in range(int(rng.integers(5, 11))):
-        wall = int(rng.integers(0, 4))
-        w, h = rng.uniform(0.5, 1.8), rng.uniform(0.4, 1.3)
-        z0 = rng.uniform(0.4, max(0.5, H - h - 0.2))
-        eps = 0.003
-        tex = random_texture(rng, "poster")
-        if wall == 0:
-            x0 = rng.uniform(0.1, W - w - 0.1)
-            room.panels.append(Panel(np.array([x0, eps, z0]), Z * h, X * w, tex, "poster"))
-        elif wall == 1:
-            x0 = rng.uniform(0.1, W - w - 0.1)
-            room.panels.append(Panel(np.array([x0 + w, D - eps, z0]), Z * h, -X * w, tex, "poster"))
-        elif wall == 2:
-            y0 = rng.uniform(0.1, D - w - 0.1)
-            room.panels.append(Panel(np.array([eps, y0 + w, z0]), Z * h, -Y * w, tex, "poster"))
-        else:
-            y0 = rng.uniform(0.1, D - w - 0.1)
-            room.panels.append(Panel(np.array([W - eps, y0, z0]), Z * h, Y * w, tex, "poster"))
-    for _ in range(int(rng.integers(2, 5))):
-        w, d = rng.uniform(0.8, 2.5), rng.uniform(0.6, 2.0)
-        x0, y0 = rng.uniform(0.2, W - w - 0.2), rng.uniform(0.2, D - d - 0.2)
-        room.panels.append(Panel(np.array([x0, y0, 0.003]), X * w, Y * d, random_texture(rng, "rug"), "rug"))
+    tops: list[F.Surface] = []
+    _place_along_walls(room, rng, walls, floor, rtype, H, tops)
+    _place_interior(room, rng, floor, rtype, tops)
+    for top in tops:
+        if top.M[2, 3] < 1.6:
+            room.panels += F.clutter_on(rng, top, density=rng.uniform(0.8, 1.8))
+    # floor clutter and rugs
+    for what, rate in (("carton", 4.0), ("plant", 1.0), ("bin", 0.5), ("chair", 0.5)):
+        for _ in range(int(rng.poisson(rate))):
+            _place_one(room, rng, floor, what, tops)
+    for _ in range(int(rng.poisson(0.8))):
+        w, d = rng.uniform(0.8, 2.2), rng.uniform(0.6, 1.6)
+        M = _random_spot(rng, floor, 0.3, 0.3, 0.0)
+        if M is not None:
+            tex = random_texture(rng, "rug") if rng.random() < 0.5 else material(rng, "fabric")
+            room.panels += box(M @ placement(0, 0, 0.0), (w, d, 0.006), tex, "rug")
+    _decorate_walls(room, rng, walls, H)
 
     n_lights = int(rng.integers(1, 4))
-    room.lights = np.stack([rng.uniform([0.8, 0.8, H - 0.3], [W - 0.8, D - 0.8, H - 0.1]) for _ in range(n_lights)])
+    lights = []
+    for _ in range(n_lights):
+        ix, iy = np.nonzero(floor.inside)
+        k = int(rng.integers(0, len(ix)))
+        lights.append([(ix[k] + 0.5) * CELL, (iy[k] + 0.5) * CELL, H - rng.uniform(0.1, 0.3)])
+    room.lights = np.asarray(lights)
     room.light_power = rng.uniform(1.5, 4.0, size=n_lights) / n_lights
     room.ambient = float(rng.uniform(0.2, 0.4))
-    room.keepout = boxes
+    room.cell = CELL
+    room.walkable = floor.walkable(0.35)
+    room.room_type = rtype
     return room
-
-
-def _add_front_poster(room: Room, rng: np.random.Generator, lo, hi, wall: int) -> None:
-    X, Y, Z = np.eye(3)
-    eps = 0.003
-    w_avail = (hi - lo)[0] if wall in (0, 1) else (hi - lo)[1]
-    h_avail = hi[2] - lo[2]
-    w, h = rng.uniform(0.3, 0.9) * w_avail, rng.uniform(0.3, 0.8) * h_avail
-    s0, z0 = rng.uniform(0, w_avail - w), lo[2] + rng.uniform(0.05, h_avail - h)
-    tex = random_texture(rng, "poster")
-    if wall == 0:  # unit at y=0, front at y=hi_y, normal +y
-        room.panels.append(Panel(np.array([lo[0] + s0, hi[1] + eps, z0]), Z * h, X * w, tex, "poster"))
-    elif wall == 1:  # front at y=lo_y, normal -y
-        room.panels.append(Panel(np.array([lo[0] + s0 + w, lo[1] - eps, z0]), Z * h, -X * w, tex, "poster"))
-    elif wall == 2:  # front at x=hi_x, normal +x
-        room.panels.append(Panel(np.array([hi[0] + eps, lo[1] + s0 + w, z0]), Z * h, -Y * w, tex, "poster"))
-    else:  # front at x=lo_x, normal -x
-        room.panels.append(Panel(np.array([lo[0] - eps, lo[1] + s0, z0]), Z * h, Y * w, tex, "poster"))
