@@ -7,7 +7,9 @@
   fragments' RGB-D views in ``source_views``/``target_views``), in eval mode.
 * ``mode=benchmark method=... data.root=DIR``: a classical method over the test benchmarks of a
   data set in the 3DMatch layout; writes ``<out_dir>/<benchmark>/<scene>/est.log`` and
-  ``<out_dir>/metrics.json``.
+  ``<out_dir>/metrics.json``. ``method=learned checkpoint=FILE``: a trained model, evaluated as a
+  run evaluates it (every N of ``registration.n_points``; color models read the fragments' views);
+  writes ``<out_dir>/<benchmark>/<N>/<scene>/est.log`` and prints RR/FMR/IR per benchmark and N.
 
 The last line of standard output is one JSON object. Every input is checked before work starts;
 a bad file is an error that names it.
@@ -176,23 +178,68 @@ def _num(v: float) -> float | None:
     return None if v is None or not np.isfinite(v) else float(v)
 
 
-def run_benchmark(cfg: DictConfig) -> dict[str, Any]:
-    from pcrcg.evaluation.run import configs_from, run_benchmark_mode
+def _load_checkpoint(path: Path):
+    """The trained module (CPU, eval mode); a file that is not a checkpoint of ``pcrcg.run`` is a DataError."""
+    from pcrcg.models.train import load_module
 
+    try:
+        return load_module(path, device="cpu")
+    except PcrcgError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - torch/pickle/Lightning errors: reported with the file, on one line
+        msg = " ".join(str(exc).split())[:200]
+        raise DataError(path, f"is not a checkpoint of `python -m pcrcg.run` ({exc.__class__.__name__}: {msg})") from None
+
+
+def learned_table(summary: dict[str, Any], n_points: list[int]) -> str:
+    """RR / FMR / IR (%), RRE (deg), RTE (m) per benchmark and N, as printed by mode=benchmark method=learned."""
+    lines = []
+    for b, m in summary["benchmarks"].items():
+        lines.append(f"{b}: {int(m.get('n_pairs', 0))} pairs, {int(m.get('n_counted', 0))} counted in RR")
+        lines.append(f"  {'N':>5} {'RR':>6} {'FMR':>6} {'IR':>6} {'RRE':>6} {'RTE':>6}")
+        for n in n_points:
+            v = [m.get(f"{k}_{n}", float("nan")) for k in ("rr", "fmr", "ir", "rre", "rte")]
+            lines.append(f"  {n:>5} {v[0]:6.1f} {v[1]:6.1f} {v[2]:6.1f} {v[3]:6.2f} {v[4]:6.3f}")
+    return "\n".join(lines)
+
+
+def run_benchmark(cfg: DictConfig) -> dict[str, Any]:
+    from pcrcg.evaluation.run import CLASSICAL, configs_from, run_benchmark_mode
+
+    method = str(cfg.method)
+    if method != "learned" and method not in CLASSICAL:
+        raise ConfigError("method", method, " | ".join((*CLASSICAL, "learned")))
     root = OmegaConf.select(cfg, "data.root")
     if root is None:
         raise ConfigError("data.root", None, "a data set folder in the 3DMatch layout (data.root=DIR or data=<name>)")
+    _existing(str(root), "data root (data.root)", folder=True)
+    ckpt, learned_views = None, 0
+    if method == "learned":
+        ckpt = _existing(_need(cfg, "checkpoint", "a trained model's checkpoint (method=learned)"), "checkpoint")
+        module = _load_checkpoint(ckpt)
+        learned_views = int(module.lifter.cfg.n_views_needed) if module.lifter is not None else 0
+        del module
     rcfg, bcfg = configs_from(cfg)
     summary = run_benchmark_mode(
-        str(cfg.method), str(root), str(cfg.out_dir), list(cfg.benchmarks), rcfg=rcfg, bcfg=bcfg,
+        method, str(root), str(cfg.out_dir), list(cfg.benchmarks), rcfg=rcfg, bcfg=bcfg,
+        checkpoint=ckpt, learned_views=learned_views,
         init_dir=cfg.init_dir, n_views=int(cfg.views), seed=int(cfg.seed),
         max_pairs=None if cfg.max_pairs is None else int(cfg.max_pairs),
         thresholds=OmegaConf.to_container(cfg.eval, resolve=True), predator_variant=bool(cfg.predator_variant),
     )
-    short = {b: {k: v[k] for k in ("rr", "rr_pair", "rre", "rte", "n_counted", "n_success") if k in v}
-             for b, v in summary["benchmarks"].items()}
-    return {"method": summary["method"], "out_dir": str(cfg.out_dir), "metrics": str(Path(str(cfg.out_dir)) / "metrics.json"),
-            "benchmarks": short}
+    out = {"method": summary["method"], "out_dir": str(cfg.out_dir), "metrics": str(Path(str(cfg.out_dir)) / "metrics.json")}
+    if method == "learned":
+        print(learned_table(summary, list(rcfg.n_points)))
+        keys = [f"{k}_{n}" for n in rcfg.n_points for k in ("rr", "fmr", "ir")] + ["rre", "rte", "n_pairs", "n_counted"]
+        out["checkpoint"] = str(ckpt)
+        # NaN (e.g. RRE without a registered pair) as null: the last line stays strict JSON
+        out["benchmarks"] = {b: {k: _num(v[k]) for k in keys if k in v} for b, v in summary["benchmarks"].items()}
+        if "color_coverage" in summary["metrics"]:
+            out["color_coverage"] = _num(summary["metrics"]["color_coverage"])
+        return out
+    out["benchmarks"] = {b: {k: v[k] for k in ("rr", "rr_pair", "rre", "rte", "n_counted", "n_success") if k in v}
+                         for b, v in summary["benchmarks"].items()}
+    return out
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:

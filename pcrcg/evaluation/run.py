@@ -2,10 +2,13 @@
 
 * :func:`run_classical` registers every pair of one benchmark with ``fpfh | icp | color_icp |
   sift_dlt``, writes ``<out_dir>/<scene>/est.log`` and scores it;
+* :func:`evaluate_learned` evaluates a trained checkpoint on one benchmark at every N;
 * :func:`evaluate` is the pipeline's evaluation stage (``stages.evaluate`` of ``conf/run.yaml``
   calls it through ``pcrcg.pipeline.evaluate_method``): the learned model at every N, or a
   classical method (ICP / colored ICP optionally started from the learned model's estimates), on
-  every benchmark of ``eval.benchmarks``; metrics named ``<benchmark>/<metric>[_<N>]``.
+  every benchmark of ``eval.benchmarks``; metrics named ``<benchmark>/<metric>[_<N>]``;
+* :func:`run_benchmark_mode` is ``python -m pcrcg.evaluate mode=benchmark``: any method, learned
+  included, over the test benchmarks of any data set in the layout.
 """
 
 from __future__ import annotations
@@ -221,6 +224,50 @@ def predict_outputs(cfg: Any, data_root: str | os.PathLike, checkpoint: str | os
         yield out
 
 
+def evaluate_learned(cfg: Any, data_root: str | os.PathLike, checkpoint: str | os.PathLike | None, benchmark: str,
+                     gt: Mapping[str, SceneGT], *, rcfg: RegistrationConfig, est_dir: str | os.PathLike | None,
+                     seed: int = 0, max_pairs: int | None = None, predator_variant: bool = False,
+                     thresholds: Mapping[str, float] | None = None, progress: bool = True) -> dict[str, float]:
+    """A trained checkpoint on one benchmark at every N of ``rcfg.n_points``: the network's outputs
+    (:func:`predict_outputs`) registered and scored by :func:`evaluate_model_outputs` (``rr_<N>``,
+    ``fmr_<N>``, ``ir_<N>``, ``rre_<N>``, ``rte_<N>``, ``rre``, ``rte``, ``color_coverage``, pair
+    counts); ``<est_dir>/<N>/<scene>/est.log`` when ``est_dir`` is given."""
+    th = {**thresholds_from({}), **dict(thresholds or {})}
+    outputs = predict_outputs(cfg, data_root, checkpoint, benchmark, rcfg.device, max_pairs, progress)
+    return evaluate_model_outputs(outputs, gt, cfg=rcfg, est_dir=est_dir, seed=seed, predator_variant=predator_variant,
+                                  only_evaluated=max_pairs is not None, progress=progress, **th)
+
+
+def check_views(root: str | os.PathLike, gts: Mapping[str, Mapping[str, SceneGT]], n_views: int) -> None:
+    """Before work: every fragment of the benchmarks ``gts`` ({benchmark: {scene: SceneGT}}) has its
+    ``.info.txt`` and the files of its first ``n_views`` views (first, last, middle frame)."""
+    from pcrcg.data.dataset import view_frame_ids
+    from pcrcg.data.layout import frame_paths, read_fragment_info
+
+    if n_views <= 0:
+        return
+    layout = Layout(root)
+    seen: set[tuple[str, int]] = set()
+    for gt in gts.values():
+        for s, g in gt.items():
+            if not layout.intrinsics(s).is_file():
+                raise DataError(layout.intrinsics(s), f"is missing (the model lifts color from {n_views} view(s) "
+                                                      "of each fragment)")
+            for f in sorted({k for p in g.pairs for k in (p.i, p.j)}):
+                if (s, f) in seen:
+                    continue
+                seen.add((s, f))
+                info_path = layout.fragment_info(s, f)
+                if not info_path.is_file():
+                    raise DataError(info_path, f"is missing: the model lifts color from {n_views} view(s) of each "
+                                               "fragment, named by its .info.txt")
+                info = read_fragment_info(info_path)
+                for fid in view_frame_ids(info, n_views):
+                    for path in frame_paths(layout.frame_prefix(s, info.seq, fid)):
+                        if not path.is_file():
+                            raise DataError(path, f"view of fragment {f} of {s} is missing")
+
+
 # --------------------------------------------------------------------------- the pipeline's stage
 
 
@@ -276,10 +323,9 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
         protocol[b] = _protocol(rcfg, gt, th, seed, predator_variant)
         if from_learned:
             est_dir = out_dir / "learned" / b
-            outputs = predict_outputs(cfg, data_root, checkpoint, b, rcfg.device, max_pairs, progress)
-            m = evaluate_model_outputs(outputs, gt, cfg=rcfg, est_dir=est_dir, seed=seed,
-                                       predator_variant=predator_variant, only_evaluated=max_pairs is not None,
-                                       progress=progress, **th)
+            m = evaluate_learned(cfg, data_root, checkpoint, b, gt, rcfg=rcfg, est_dir=est_dir, seed=seed,
+                                 max_pairs=max_pairs, predator_variant=predator_variant, thresholds=th,
+                                 progress=progress)
             if method == "learned":
                 for k, v in m.items():
                     if k == "color_coverage":
@@ -327,6 +373,8 @@ def run_benchmark_mode(
     *,
     rcfg: RegistrationConfig,
     bcfg: BaselineConfig,
+    checkpoint: str | os.PathLike | None = None,
+    learned_views: int = 0,
     init_dir: str | os.PathLike | None = None,
     n_views: int = 2,
     seed: int = 0,
@@ -335,14 +383,26 @@ def run_benchmark_mode(
     predator_variant: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """``python -m pcrcg.evaluate mode=benchmark``: a classical method over every benchmark.
+    """``python -m pcrcg.evaluate mode=benchmark``: a method over every benchmark of a data set.
 
-    Writes ``<out_dir>/<benchmark>/<scene>/est.log`` and ``<out_dir>/metrics.json``.
-    ``init_dir`` (ICP) holds ``<benchmark>/<scene>/est.log`` estimates to start from.
+    Classical methods write ``<out_dir>/<benchmark>/<scene>/est.log``; ``init_dir`` (ICP) holds
+    ``<benchmark>/<scene>/est.log`` estimates to start from. ``method=learned`` evaluates
+    ``checkpoint`` as the pipeline does (:func:`evaluate_learned`: every N of ``rcfg.n_points``,
+    ``<out_dir>/<benchmark>/<N>/<scene>/est.log``); a model that lifts color reads
+    ``learned_views`` views of each fragment, checked before work. Returns (and writes as
+    ``<out_dir>/metrics.json``) ``{"method", "data_root", "benchmarks": {b: {...}}, "metrics":
+    {"<benchmark>/<name>": value}}``, the metrics named as a run logs them.
     """
     benchmarks = list(benchmarks)
+    if method == "learned":
+        if checkpoint is None or not Path(checkpoint).is_file():
+            raise DataError(checkpoint, "checkpoint of the learned model is missing (method=learned needs one)")
+    elif method not in CLASSICAL:
+        raise ConfigError("method", method, "learned | " + " | ".join(CLASSICAL))
     th = {**thresholds_from({}), **dict(thresholds or {})}
     gts = check_layout(data_root, benchmarks)
+    if method == "learned":
+        check_views(data_root, gts, learned_views)
     inits = {}
     if init_dir is not None:
         for b in benchmarks:
@@ -351,14 +411,29 @@ def run_benchmark_mode(
                 raise DataError(d, "folder of initial estimates (<benchmark>/<scene>/est.log) is missing")
             inits[b], _ = load_estimates(d, gts[b].keys())
     out_dir = Path(out_dir)
-    summary: dict[str, Any] = {"method": method, "data_root": str(data_root), "benchmarks": {}}
+    summary: dict[str, Any] = {"method": method, "data_root": str(data_root), "benchmarks": {}, "metrics": {}}
+    if method == "learned":
+        summary["checkpoint"] = str(checkpoint)
+    coverage: list[float] = []
     for b in benchmarks:
-        res = run_classical(method, data_root, b, cfg=bcfg, out_dir=out_dir / b, init=inits.get(b), n_views=n_views,
-                            seed=seed, max_pairs=max_pairs, gt=gts[b], thresholds=th, progress=progress)
-        entry = res["score"].to_dict()
-        entry.update({k: v for k, v in res["metrics"].items() if k not in entry})
+        if method == "learned":
+            entry: dict[str, Any] = evaluate_learned(
+                None, data_root, checkpoint, b, gts[b], rcfg=rcfg, est_dir=out_dir / b, seed=seed, max_pairs=max_pairs,
+                predator_variant=predator_variant, thresholds=th, progress=progress)
+            if "color_coverage" in entry:
+                coverage.append(entry.pop("color_coverage"))
+        else:
+            res = run_classical(method, data_root, b, cfg=bcfg, out_dir=out_dir / b, init=inits.get(b),
+                                n_views=n_views, seed=seed, max_pairs=max_pairs, gt=gts[b], thresholds=th,
+                                progress=progress)
+            entry = res["score"].to_dict()
+            entry.update({k: v for k, v in res["metrics"].items() if k not in entry})
+        summary["metrics"].update({f"{b}/{k}": v for k, v in entry.items()
+                                   if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)})
         entry["protocol"] = _protocol(rcfg, gts[b], th, seed, predator_variant)
         summary["benchmarks"][b] = entry
+    if coverage:
+        summary["metrics"]["color_coverage"] = float(np.mean(coverage))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1, default=_json_default))
     return summary
