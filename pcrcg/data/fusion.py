@@ -4,6 +4,11 @@ Uses Open3D's tensor ``VoxelBlockGrid`` (sparse voxel blocks). Two traps measure
 0.20: the legacy ``ScalableTSDFVolume`` returns empty clouds here, and ``VoxelBlockGrid`` returns an
 empty cloud when fewer frames than its default ``weight_threshold`` (3.0) see a surface, so the
 threshold is explicit. ``UniformTSDFVolume`` also works but costs 70 ms a frame at 256^3.
+
+Same frames, same bytes: the grid's points come out in hash-map order, which differs from process to
+process, and Open3D's ``voxel_down_sample`` sums each voxel's points in that order (float sums: the
+averaged fragments differed by ~2e-7 m between two builds). The extracted points are therefore sorted
+and voxel-averaged here in a fixed order (:func:`voxel_average`).
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ def fuse_frames(
         block_count=block_count,
     )
     Kt = o3c.Tensor(np.asarray(K, dtype=np.float64))
+    integrated = 0
     for color, depth, pose in zip(colors, depths, poses):
         if color.shape[:2] != depth.shape:
             raise ValueError(f"color {color.shape[:2]} and depth {depth.shape} differ in size")
@@ -62,19 +68,47 @@ def fuse_frames(
         d_img = o3d.t.geometry.Image(o3c.Tensor(mm))
         c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, dtype=np.uint8)))
         extrinsic = o3c.Tensor(invert(world_to_frag @ pose))  # fragment -> camera
-        blocks = vbg.compute_unique_block_coordinates(
-            d_img, Kt, extrinsic, 1000.0, cfg.depth_max, trunc_voxel_multiplier=cfg.trunc_voxels
-        )
+        try:
+            blocks = vbg.compute_unique_block_coordinates(
+                d_img, Kt, extrinsic, 1000.0, cfg.depth_max, trunc_voxel_multiplier=cfg.trunc_voxels
+            )
+        except RuntimeError as exc:  # Open3D aborts on a frame whose few depths touch no block
+            if "No block is touched" in str(exc):
+                continue
+            raise
         vbg.integrate(blocks, d_img, c_img, Kt, extrinsic, 1000.0, cfg.depth_max, trunc_voxel_multiplier=cfg.trunc_voxels)
+        integrated += 1
+    if integrated == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     # weights count observations (+1 per frame); the threshold is strict, hence the 0.5
     pcd = vbg.extract_point_cloud(weight_threshold=cfg.min_weight - 0.5)
     if pcd.is_empty():
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-    if cfg.fragment_voxel > 0:
-        pcd = pcd.voxel_down_sample(cfg.fragment_voxel)
     pts = pcd.point.positions.numpy().astype(np.float32)
-    cols = np.clip(pcd.point.colors.numpy().astype(np.float32), 0, 1) if "colors" in pcd.point else np.zeros_like(pts)
-    return pts, cols
+    cols = pcd.point.colors.numpy().astype(np.float32) if "colors" in pcd.point else np.zeros_like(pts)
+    # a fixed order whatever the hash map's: by position, then color
+    order = np.lexsort((*cols.T[::-1], pts[:, 2], pts[:, 1], pts[:, 0]))
+    pts, cols = pts[order], cols[order]
+    if cfg.fragment_voxel > 0:
+        pts, cols = voxel_average(pts, cols, cfg.fragment_voxel)
+    return pts, np.clip(cols, 0, 1)
+
+
+def voxel_average(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Average points and colors per ``voxel``-sized cell, summing in the input order (deterministic,
+    unlike a parallel reduction). (N, 3), (N, 3) -> (M, 3) float32 each, cells in key order.
+
+    The cells are Open3D's (``floor(p / voxel)`` in float32), so the result is Open3D's
+    ``voxel_down_sample`` up to the order of its float sums."""
+    p32 = np.asarray(points, dtype=np.float32)
+    keys = np.floor(p32 / np.float32(voxel)).astype(np.int64)
+    p = p32.astype(np.float64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    sums = np.zeros((len(counts), 6))
+    np.add.at(sums, inv, np.concatenate([p, np.asarray(colors, dtype=np.float64)], axis=1))
+    mean = sums / counts[:, None]
+    return mean[:, :3].astype(np.float32), mean[:, 3:].astype(np.float32)
 
 
 def _estimate_blocks(depths, poses, world_to_frag, K, cfg: FusionConfig) -> int:
