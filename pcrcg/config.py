@@ -432,7 +432,10 @@ def _check_group_rules(data: Mapping[str, Any]) -> None:
 
 def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
     """Rules that tie several settings together."""
+    from pcrcg.mirrors import check_mirrors
+
     _check_group_rules(data)
+    check_mirrors(data)  # views / projection.views, eval.ransac_distance / registration.ransac.distance, ...
     if top.icp_init == "learned" and top.method not in ICP_METHODS:
         raise ConfigError("icp_init", top.icp_init, f"identity unless method is {_fmt(ICP_METHODS)}")
     feats = _group_name(data, "features")

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 import time
@@ -25,6 +24,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from tqdm import tqdm
 
+from pcrcg.cli import strict_json
 from pcrcg.data.layout import BENCHMARKS, Layout
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.evaluation.metrics import (
@@ -76,20 +76,23 @@ def _select(cfg: Any, dotted: str, default: Any = None) -> Any:
 def configs_from(cfg: Any, device: str | None = None) -> tuple[RegistrationConfig, BaselineConfig]:
     """Registration and baseline settings from a composed config.
 
-    Reads the ``registration`` node when present (``conf/registration/default.yaml``); the
-    ``eval`` node of ``conf/run.yaml`` (``n_points``, ``ransac_iterations``, ``ransac_distance``)
-    overrides it.
+    Reads the ``registration`` node when present (``conf/registration/default.yaml``). In the run
+    config its ``n_points``, ``ransac.max_iterations`` and ``ransac.distance`` follow ``eval.n_points``,
+    ``eval.ransac_iterations`` and ``eval.ransac_distance`` (one setting each, :mod:`pcrcg.mirrors`):
+    a node without them takes the ``eval`` value, and two values that differ are a
+    :class:`~pcrcg.errors.ConfigError` naming both keys (nothing is silently overwritten).
     """
+    from pcrcg.mirrors import check_mirrors
+
     reg = dict(_plain(_select(cfg, "registration", {})) or {})
     ev = dict(_plain(_select(cfg, "eval", {})) or {})
     ransac = dict(reg.get("ransac") or {})
-    if ev.get("ransac_iterations") is not None:
-        ransac["max_iterations"] = int(ev["ransac_iterations"])
-    if ev.get("ransac_distance") is not None:
-        ransac["distance"] = float(ev["ransac_distance"])
+    for ev_key, node, key in (("n_points", reg, "n_points"), ("ransac_iterations", ransac, "max_iterations"),
+                              ("ransac_distance", ransac, "distance")):
+        if node.get(key) is None and ev.get(ev_key) is not None:
+            node[key] = ev[ev_key]
     reg["ransac"] = ransac
-    if ev.get("n_points"):
-        reg["n_points"] = list(ev["n_points"])
+    check_mirrors({"eval": ev, "registration": reg})
     if device is not None and str(device) != "auto":
         reg["device"] = str(device)
     if str(reg.get("device", "cpu")) == "auto":
@@ -146,11 +149,13 @@ def run_classical(
     max_pairs: int | None = None,
     gt: Mapping[str, SceneGT] | None = None,
     thresholds: Mapping[str, float] | None = None,
+    predator_variant: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Register every pair of ``benchmark`` with a classical method and score it.
 
-    ``init`` ({scene: {(i, j): 4x4}}) starts ICP / colored ICP from given estimates (identity
+    ``predator_variant``: the recall also leaves out the first pair of each scene, as Predator's
+    script does (the same setting the learned rows get). ``init`` ({scene: {(i, j): 4x4}}) starts ICP / colored ICP from given estimates (identity
     where a pair has none). Returns ``{"score": BenchmarkScore, "metrics": {...}, "estimates":
     {scene: {(i, j): 4x4}}, "seconds_per_pair": float}``; ``out_dir/<scene>/est.log`` when given.
     """
@@ -193,7 +198,7 @@ def run_classical(
     for s, i, j in keys:
         evaluated[s].add((i, j))
     scored = subset(gt, evaluated) if max_pairs is not None else dict(gt)
-    score = score_benchmark(scored, estimates, threshold=th["rmse_threshold"])
+    score = score_benchmark(scored, estimates, predator_variant, threshold=th["rmse_threshold"])
     metrics = {"rr": score.rr, "rr_pair": score.rr_pair, "rre": score.rre, "rte": score.rte,
                "seconds_per_pair": seconds}
     if irs:
@@ -341,7 +346,7 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
         est_dir = out_dir / method / b
         res = run_classical(method, data_root, b, cfg=bcfg, out_dir=est_dir, init=init,
                             n_views=int(_select(cfg, "views", 2) or 2), seed=seed, max_pairs=max_pairs, gt=gt,
-                            thresholds=th, progress=progress)
+                            thresholds=th, predator_variant=predator_variant, progress=progress)
         for k, v in res["metrics"].items():
             metrics[f"{b}/{k}"] = v
         artifacts.append((est_dir, f"estimates/{b}"))
@@ -350,19 +355,9 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
     artifacts += pair_artifacts(out_dir, gts, artifacts, predator_variant, th, only_present=max_pairs is not None)
     out_dir.mkdir(parents=True, exist_ok=True)
     mfile = out_dir / "metrics.json"
-    mfile.write_text(json.dumps({"metrics": metrics, "protocol": protocol}, indent=1, default=_json_default))
+    mfile.write_text(strict_json({"metrics": metrics, "protocol": protocol}, indent=1))  # NaN as null
     artifacts.append((mfile, "evaluation"))
     return {"metrics": metrics, "artifacts": artifacts, "protocol": protocol}
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    if isinstance(o, tuple):
-        return list(o)
-    return str(o)
 
 
 def run_benchmark_mode(
@@ -425,7 +420,7 @@ def run_benchmark_mode(
         else:
             res = run_classical(method, data_root, b, cfg=bcfg, out_dir=out_dir / b, init=inits.get(b),
                                 n_views=n_views, seed=seed, max_pairs=max_pairs, gt=gts[b], thresholds=th,
-                                progress=progress)
+                                predator_variant=predator_variant, progress=progress)
             entry = res["score"].to_dict()
             entry.update({k: v for k, v in res["metrics"].items() if k not in entry})
         summary["metrics"].update({f"{b}/{k}": v for k, v in entry.items()
@@ -435,5 +430,5 @@ def run_benchmark_mode(
     if coverage:
         summary["metrics"]["color_coverage"] = float(np.mean(coverage))
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=1, default=_json_default))
+    (out_dir / "metrics.json").write_text(strict_json(summary, indent=1))  # NaN as null
     return summary

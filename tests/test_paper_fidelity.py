@@ -1,0 +1,86 @@
+"""Issue 14: every ablation axis means what the paper's table means (the paper's text and the
+official code, Gardlin/PCR-CG, and Predator's protocol, prs-eth/OverlapPredator)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pcrcg.config import load_run_config
+from pcrcg.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run_cfg(*overrides: str):
+    return load_run_config(["profile=tiny", *overrides])
+
+
+def _compose_evaluate(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=["profile=tiny", *overrides])
+
+
+# --------------------------------------------------------------------------- item 13: one key per setting
+
+
+@pytest.mark.parametrize("mirror, primary, value", [
+    ("registration.ransac.distance", "eval.ransac_distance", "0.03"),
+    ("registration.ransac.max_iterations", "eval.ransac_iterations", "123"),
+    ("registration.n_points", "eval.n_points", "[1000]"),
+    ("projection.views", "views", "3"),
+    ("projection.window_size", "window_size", "7"),
+])
+def test_a_mirror_set_alone_is_an_error_naming_both_keys(mirror, primary, value):
+    with pytest.raises(ConfigError) as info:
+        _run_cfg(f"{mirror}={value}")
+    assert info.value.setting == mirror and primary in str(info.value)
+
+
+def test_the_primary_key_moves_its_mirror():
+    from pcrcg.evaluation.run import configs_from
+
+    cfg = _run_cfg("eval.ransac_distance=0.03", "eval.ransac_iterations=123", "eval.n_points=[1000]", "views=3",
+                   "window_size=7")
+    assert cfg.projection.views == 3 and cfg.projection.window_size == 7
+    rcfg, bcfg = configs_from(cfg)
+    assert rcfg.ransac.distance == 0.03 and rcfg.ransac.max_iterations == 123 and rcfg.n_points == (1000,)
+    assert bcfg.ransac.distance == 0.03
+    # both names set to the same value: one setting, no conflict
+    cfg = _run_cfg("eval.ransac_distance=0.03", "registration.ransac.distance=0.03")
+    assert configs_from(cfg)[0].ransac.distance == 0.03
+
+
+def test_configs_from_refuses_two_values_instead_of_overwriting_one():
+    from pcrcg.evaluation.run import configs_from
+
+    both = OmegaConf.create({"eval": {"ransac_distance": 0.05}, "registration": {"ransac": {"distance": 0.03}}})
+    with pytest.raises(ConfigError, match="eval.ransac_distance"):
+        configs_from(both)
+    # python -m pcrcg.evaluate composes the registration group alone: its own value counts
+    rcfg, _ = configs_from(_compose_evaluate("registration.ransac.distance=0.03"))
+    assert rcfg.ransac.distance == 0.03
+
+
+def test_predator_variant_reaches_the_classical_methods(tmp_path):
+    from pcrcg.evaluation.metrics import load_benchmark
+    from pcrcg.evaluation.run import run_classical
+    from pcrcg.data.layout import Layout
+    from pcrcg.registration.synthetic import write_layout
+
+    from pcrcg.evaluation.model import subset
+
+    root = write_layout(tmp_path / "data", seed=0, n_points=6000)
+    full = load_benchmark(Layout(root).benchmark_dir("3DMatch"))
+    gt = subset(full, {s: {(p.i, p.j) for p in g.pairs if p.j - p.i > 1} for s, g in full.items()})
+    init = {s: {(p.i, p.j): p.transform for p in g.pairs} for s, g in gt.items()}
+    counted = {}
+    for variant in (False, True):
+        res = run_classical("icp", root, "3DMatch", init=init, gt=gt, predator_variant=variant, progress=False)
+        counted[variant] = res["score"].n_counted
+    assert counted[True] == counted[False] - 1  # Predator's script never counts a scene's first pair
