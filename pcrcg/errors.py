@@ -27,3 +27,14 @@ class ConfigError(PcrcgError, ValueError):
         self.value = value
         self.allowed = allowed
         super().__init__(f"invalid config value {setting}={value!r}: allowed {allowed}")
+
+
+class Terminated(KeyboardInterrupt):
+    """The process received SIGTERM (a scheduler or ``kill`` ended it): handled like Ctrl-C, so
+    that runs are closed as KILLED and the command ends with one line."""
+
+
+def one_line(exc: BaseException, limit: int = 400) -> str:
+    """An exception's message on one line (whitespace folded), at most ``limit`` characters."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."

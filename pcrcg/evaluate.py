@@ -17,8 +17,6 @@ a bad file is an error that names it.
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -256,13 +254,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    try:
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.evaluate"):  # bad input: one line naming the file or setting, exit 2
         result = run(cfg)
-    except PcrcgError as exc:  # bad input: one clear line naming the file or setting, no traceback
-        print(f"pcrcg.evaluate: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    print(json.dumps(result))
+    from pcrcg.cli import strict_json
+
+    print(strict_json(result))  # NaN as null: the last line is strict JSON
 
 
 if __name__ == "__main__":
-    main()
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.evaluate"):
+        main()

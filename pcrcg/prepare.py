@@ -11,16 +11,19 @@ import json
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from pcrcg.cli import one_line_errors
 from pcrcg.data.materialise import prepare_dataset, read_manifest
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="prepare")
 def main(cfg: DictConfig) -> None:
-    data_cfg = OmegaConf.to_container(cfg.data, resolve=True)
-    root = prepare_dataset(data_cfg, seed=int(cfg.seed), force=bool(cfg.force))
-    man = read_manifest(root) or {}
-    print(json.dumps({"root": str(root), "stats": man.get("stats", {})}))
+    with one_line_errors("pcrcg.prepare"):  # a bad setting or file: one line, exit 2; Ctrl-C: one line
+        data_cfg = OmegaConf.to_container(cfg.data, resolve=True)
+        root = prepare_dataset(data_cfg, seed=int(cfg.seed), force=bool(cfg.force))
+        man = read_manifest(root) or {}
+        print(json.dumps({"root": str(root), "stats": man.get("stats", {})}))
 
 
 if __name__ == "__main__":
-    main()
+    with one_line_errors("pcrcg.prepare"):
+        main()

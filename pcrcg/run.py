@@ -16,8 +16,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from pcrcg.cli import one_line_errors
 from pcrcg.config import CONF_DIR, check_overrides
-from pcrcg.errors import ConfigError
 from pcrcg.pipeline import JobInfo, run_job
 
 
@@ -46,7 +46,11 @@ def job_info_from_hydra() -> JobInfo:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="run")
 def _hydra_main(cfg: DictConfig) -> str:
-    return run_job(cfg, job_info_from_hydra()).status
+    # a bad value or file: one line, exit 2; Ctrl-C / SIGTERM: one line, exit 130 / 143 (the run is
+    # closed as KILLED first). SystemExit passes through Hydra's job runner, which would print a
+    # traceback for an exception.
+    with one_line_errors("pcrcg.run"):
+        return run_job(cfg, job_info_from_hydra()).status
 
 
 def cli_search_dirs(argv: Sequence[str]) -> list[Path]:
@@ -83,13 +87,10 @@ def cli_overrides(argv: Sequence[str]) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
-    if not any(a in ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c") for a in args):
-        try:
+    with one_line_errors("pcrcg.run"):
+        if not any(a in ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c") for a in args):
             check_overrides([o for o in cli_overrides(args) if not o.startswith("hydra")], cli_search_dirs(args))
-        except ConfigError as e:
-            print(f"pcrcg.run: {e}", file=sys.stderr)
-            sys.exit(2)
-    _hydra_main()
+        _hydra_main()
 
 
 if __name__ == "__main__":

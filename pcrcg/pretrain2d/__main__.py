@@ -14,7 +14,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from pcrcg.errors import PcrcgError
+from pcrcg.cli import one_line_errors
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="pretrain2d")
@@ -25,13 +25,11 @@ def main(cfg: DictConfig) -> None:
         base = HydraConfig.get().runtime.cwd
     except ValueError:  # pragma: no cover - called without Hydra
         base = None
-    try:
+    with one_line_errors("pcrcg.pretrain2d"):  # a bad setting or file: one line, exit 2; Ctrl-C: one line
         result = pretrain(cfg, base_dir=base, log=lambda m: print(m, file=sys.stderr, flush=True))
-    except PcrcgError as e:
-        print(f"pcrcg.pretrain2d: {e}", file=sys.stderr)
-        sys.exit(2)
     print(json.dumps(result, default=str), flush=True)
 
 
 if __name__ == "__main__":
-    main()
+    with one_line_errors("pcrcg.pretrain2d"):
+        main()

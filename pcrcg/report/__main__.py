@@ -9,6 +9,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from pcrcg.cli import one_line_errors
 from pcrcg.report import generate_report
 
 
@@ -18,11 +19,13 @@ def main(cfg: DictConfig) -> None:
 
     base = HydraConfig.get().runtime.cwd
     command = " ".join(["python -m pcrcg.report", *HydraConfig.get().overrides.task])
-    result = generate_report(cfg, base_dir=base, command=command)
+    with one_line_errors("pcrcg.report"):  # a bad setting: one line, exit 2; Ctrl-C: one line
+        result = generate_report(cfg, base_dir=base, command=command)
     print(f"[report] {len(result.tables)} tables, {len(result.files)} files in {result.out_dir}")
     print(f"[report] start here: {result.index}")
     print(f"[report] runs: {ui_command(result.tracking_uri)}")
 
 
 if __name__ == "__main__":
-    main()
+    with one_line_errors("pcrcg.report"):
+        main()
