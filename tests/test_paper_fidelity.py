@@ -84,3 +84,18 @@ def test_predator_variant_reaches_the_classical_methods(tmp_path):
         res = run_classical("icp", root, "3DMatch", init=init, gt=gt, predator_variant=variant, progress=False)
         counted[variant] = res["score"].n_counted
     assert counted[True] == counted[False] - 1  # Predator's script never counts a scene's first pair
+
+
+# --------------------------------------------------------------------------- item 6: circle loss scale
+
+
+def test_circle_loss_scale_is_the_one_the_official_trainings_ran_with():
+    from pcrcg.models.losses import LossConfig
+
+    # Predator's and PCR-CG's main.py build MetricLoss(config) without log_scale: its default 16 applies
+    assert LossConfig().log_scale == 16.0
+    cfg = _run_cfg()
+    assert cfg.model.loss.log_scale == 16
+    assert LossConfig.from_mapping(cfg.model.loss).log_scale == 16
+    # the configs' 24 is a setting
+    assert LossConfig.from_mapping(_run_cfg("model.loss.log_scale=24").model.loss).log_scale == 24

@@ -121,7 +121,7 @@ def test_circle_loss_known_values():
 def test_circle_loss_ignores_rows_without_negatives():
     coords = torch.tensor([[0.0, 0.05], [1.0, 0.0]])  # row 0 / column 1 have no negative beyond 0.8
     feats = torch.tensor([[0.5, 1.0], [1.0, 0.5]])
-    val = circle_loss(coords, feats, 0.5, 0.8)
+    val = circle_loss(coords, feats, 0.5, 0.8, log_scale=24)
     # only row 1 and column 0 count; each has one positive (logit 3.84) and one negative (3.84)
     lse = math.log(math.exp(3.84) + 1)
     assert float(val) == pytest.approx(math.log1p(math.exp(2 * lse)) / 24, rel=1e-6)

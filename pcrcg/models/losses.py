@@ -44,7 +44,7 @@ class LossConfig:
     neg_margin: float = 1.4
     pos_optimal: float = 0.1
     neg_optimal: float = 1.4
-    log_scale: float = 24.0
+    log_scale: float = 16.0  # what Predator / PCR-CG trained with (their configs' 24 never reaches the loss)
     max_points: int = 256
     w_circle: float = 1.0
     w_overlap: float = 1.0
@@ -60,7 +60,7 @@ class LossConfig:
 
 def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,
                 pos_margin: float = 0.1, neg_margin: float = 1.4, pos_optimal: float = 0.1,
-                neg_optimal: float = 1.4, log_scale: float = 24.0) -> torch.Tensor:
+                neg_optimal: float = 1.4, log_scale: float = 16.0) -> torch.Tensor:
     """Circle loss of a source x target block: coords_dist, feats_dist (n, m) -> scalar.
 
     Returns 0 (connected to the graph) when no row or column has both a positive and a negative.
