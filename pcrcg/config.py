@@ -17,6 +17,7 @@ the allowed values:
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Optional, Sequence
@@ -325,7 +326,44 @@ def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = Non
     ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known;
     ``data``: ``cfg`` already resolved to plain containers (saves resolving it again).
     """
+    An error names the key the user set: a value interpolated from another key
+    (``trainer.max_epochs: ${oc.select:profile.train.max_epochs,30}``) is reported as that key.
     if data is None:
+    try:
+        return _validate_run_config(cfg, choices, search_dirs, data)
+    except ConfigError as e:
+        source = source_key(cfg, e.setting)
+        if source == e.setting:
+            raise
+        raise ConfigError(source, e.value, f"{e.allowed} (it sets {e.setting})") from None
+
+
+_INTERPOLATION = re.compile(r"\$\{(?:oc\.select:)?\s*([A-Za-z_][\w.]*)\s*(?:,[^}]*)?\}")
+_UNSET = object()
+
+
+def source_key(cfg: Any, key: str) -> str:
+    """The key a value comes from: ``key`` itself, or, when its node is a plain interpolation
+    (``${a.b}``, ``${oc.select:a.b,default}``) of a key that is set, that key (transitively)."""
+    if not isinstance(cfg, DictConfig):
+        return key
+    seen = set()
+    while key not in seen:
+        seen.add(key)
+        parent, _, name = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+        if not isinstance(node, DictConfig) or name not in node:
+            break
+        raw = node._get_node(name)._value()  # type: ignore[union-attr]
+        m = _INTERPOLATION.fullmatch(raw.strip()) if isinstance(raw, str) else None
+        if m is None or OmegaConf.select(cfg, m.group(1), default=_UNSET) is _UNSET:
+            break  # not an interpolation, or its default is used (the key is not set)
+        key = m.group(1)
+    return key
+
+
+def _validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None,
+                         search_dirs: Sequence[Path], data: Mapping[str, Any] | None) -> RunSchema:
         try:
             data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
         except OmegaConfBaseException as e:
@@ -400,6 +438,33 @@ TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_tr
 OPTIMIZERS = ("sgd", "adam")
 
 GROUP_RULES: dict[str, Any] = {
+def _optional_int_at_least(low: int):
+    """null, or an integer >= ``low`` (``max_steps``: null means no cap; 0 is not "no cap")."""
+    def check(k: str, v: Any) -> None:
+        if v is not None:
+            _int_at_least(k, v, low)
+    return check
+
+
+def _non_negative(setting: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise ConfigError(setting, value, "a number >= 0")
+
+
+def _batches(setting: str, value: Any) -> None:
+    """Lightning's ``limit_*_batches``: a fraction in (0, 1] or a count >= 1 (null: all)."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0 or \
+            (isinstance(value, float) and value > 1 and not float(value).is_integer()):
+        raise ConfigError(setting, value, "a fraction in (0, 1], a number of batches >= 1, or null (all)")
+
+
+def _unit_interval(setting: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1:
+        raise ConfigError(setting, value, "a number in [0, 1)")
+
+
     "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
     "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
     "features.dim": lambda k, v: _int_at_least(k, v, 0),
@@ -411,6 +476,30 @@ GROUP_RULES: dict[str, Any] = {
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
     "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
     "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
+    "trainer.max_steps": _optional_int_at_least(1),
+    "trainer.limit_train_batches": _batches,
+    "trainer.limit_val_batches": lambda k, v: None if v == 0 else _batches(k, v),
+    "trainer.log_every_n_steps": lambda k, v: _int_at_least(k, v, 1),
+    "trainer.checkpoint_every_n_steps": _optional_int_at_least(1),
+    "trainer.num_workers": lambda k, v: _int_at_least(k, v, 0),
+    "trainer.num_threads": _optional_int_at_least(1),
+    "trainer.optim.momentum": _unit_interval,
+    "trainer.optim.weight_decay": _non_negative,
+    "trainer.optim.lr_decay": _fraction,
+    "trainer.optim.encoder_lr_scale": _non_negative,
+    "trainer.augment.rotation_range_deg": _non_negative,
+    "trainer.augment.noise_std": _non_negative,
+    "model.voxel_size": _positive,
+    "model.num_layers": lambda k, v: _int_at_least(k, v, 2),
+    "model.first_dim": lambda k, v: _int_at_least(k, v, 1),
+    "model.final_dim": lambda k, v: _int_at_least(k, v, 1),
+    "model.gnn_dim": lambda k, v: _int_at_least(k, v, 1),
+    "model.num_heads": lambda k, v: _int_at_least(k, v, 1),
+    "model.dgcnn_k": lambda k, v: _int_at_least(k, v, 1),
+    "model.max_points": lambda k, v: _int_at_least(k, v, 1),
+    "model.loss.max_points": lambda k, v: _int_at_least(k, v, 1),
+    "registration.ransac.distance": _positive,
+    "registration.ransac.max_iterations": lambda k, v: _int_at_least(k, v, 1),
     "trainer.optim.name": lambda k, v: _one_of(k, v, OPTIMIZERS),
     "trainer.optim.lr": _positive,
     "data.workers": lambda k, v: _int_at_least(k, v, 1),

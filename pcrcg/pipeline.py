@@ -18,6 +18,11 @@ config is validated is recorded on the run (FAILED, ``error`` tag, ``error.txt``
 :class:`~pcrcg.errors.ConfigError` raised there (a missing weights file) marks the run
 ``not_run``. In a multirun the job then returns normally so that the sweep goes on (the
 multirun callback reports failures at the end); a single run re-raises.
+
+Every run ends in a terminal state: FINISHED, FAILED (an error, also ``SystemExit``), or KILLED
+(Ctrl-C, SIGTERM: the run is closed, then the interruption goes on and stops the command). A run
+whose process was killed outright (SIGKILL) stays RUNNING in the store; the next launch of the same
+config closes it as KILLED before it starts (:meth:`~pcrcg.tracking.runs.RunTracker.close_stale`).
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
-from pcrcg.errors import ConfigError, PcrcgError
+from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -101,6 +106,7 @@ class RunContext:
     checkpoint: Path | None = None
     run_id: str | None = None
     tracker: "RunTracker | None" = None
+    metrics: dict[str, float] = field(default_factory=dict)
 
     def path(self, setting: str) -> Path:
         """A ``paths.*`` setting made absolute against the folder the command started in."""
@@ -123,7 +129,7 @@ class RunContext:
 
 @dataclass
 class RunOutcome:
-    status: str  # finished | skipped | failed | not_run
+    status: str  # finished | skipped | failed | not_run | killed
     config_hash: str
     run_name: str
     run_id: str | None = None
@@ -242,7 +248,8 @@ def train_model(ctx: RunContext) -> TrainOutput:
     hist_file = cache / "history.json"
     cache.mkdir(parents=True, exist_ok=True)
     with FileLock(str(cache / ".lock")):
-        if ckpt.is_file() and bool(OmegaConf.select(ctx.cfg, "runtime.reuse_checkpoints", default=True)):
+        if ckpt.is_file() and bool(OmegaConf.select(ctx.cfg, "runtime.reuse_checkpoints", default=True)) \
+                and _reusable_checkpoint(ckpt):
             history = json.loads(hist_file.read_text()) if hist_file.is_file() else {}
             print(f"[run] reusing checkpoint {ckpt} (same training config {key})")
             return TrainOutput(checkpoint=ckpt, history=history, reused=True)
@@ -265,6 +272,24 @@ def train_model(ctx: RunContext) -> TrainOutput:
                                                            "train_hash": key}))
             out.checkpoint = ckpt
     return out
+
+
+def _reusable_checkpoint(ckpt: Path) -> bool:
+    """A cached ``model.ckpt`` is reused only when it reads safely as a checkpoint of this project
+    (:func:`pcrcg.models.train.read_checkpoint`); one that does not (planted, corrupt) is moved aside
+    with a one-line warning and the model is trained again."""
+    from pcrcg.errors import DataError
+
+    read_checkpoint = _need("pcrcg.models.train", "read_checkpoint", "train")
+
+    try:
+        read_checkpoint(ckpt)
+        return True
+    except DataError as e:
+        aside = ckpt.with_name(f"{ckpt.name}.bad-{time.strftime('%Y%m%d-%H%M%S')}")
+        os.replace(ckpt, aside)
+        print(f"[run] warning: not reusing {one_line(e)}; moved it to {aside.name}, training again", file=sys.stderr)
+        return False
 
 
 def _curves(ctx: RunContext) -> dict[str, list]:
@@ -310,6 +335,8 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
 
         uri = resolve_tracking_uri(cfg.logger.tracking_uri, job.base_dir)
         tracker = RunTracker(uri, cfg.experiment_name)
+        for stale in tracker.close_stale(h):
+            print(f"[run] closed stale run {stale} of config hash {h} as KILLED (its process is gone)")
         if cfg.logger.skip_finished:
             done = tracker.find_finished(h)
             if done is not None:
@@ -319,56 +346,42 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
                       f"in experiment {cfg.experiment_name!r}")
                 return outcome
 
-    run_id = None
-    if tracker is not None:
-        run_id = tracker.start(name, _tags(cfg, data, h, job))
-        tracker.log_params(run_id, flatten(data))
-        _log_config_files(tracker, run_id, data, job)
+    from pcrcg.cli import interrupt_reason, sigterm_as_interrupt
 
+    run_id = None
     ctx = RunContext(cfg=cfg, job=job, out_dir=job.output_dir, device=resolve_device(OmegaConf.select(cfg, "runtime.device")),
-                     run_id=run_id, tracker=tracker)
-    timings: dict[str, float] = {}
+                     tracker=tracker)
+    stage = "start"
     try:
-        preflight(data)
-        t = time.perf_counter()
-        ctx.data_root = Path(_stage(cfg.stages.prepare)(ctx))
-        timings["time/prepare_s"] = time.perf_counter() - t
-        if needs_training(cfg):
-            t = time.perf_counter()
-            trained = _stage(cfg.stages.train)(ctx)
-            timings["time/train_s"] = time.perf_counter() - t
-            ctx.checkpoint = trained.checkpoint
-            _log_training(ctx, trained)
-        t = time.perf_counter()
-        result: EvalOutput = _stage(cfg.stages.evaluate)(ctx)
-        timings["time/evaluate_s"] = time.perf_counter() - t
-        metrics = {k: float(v) for k, v in result.metrics.items() if v is not None}
-        _write_outputs(ctx, metrics, result, h)
-        timings["time/total_s"] = time.perf_counter() - t0
-        if tracker is not None and run_id is not None:
-            tracker.log_metrics(run_id, {**metrics, **timings})
-            tracker.log_params(run_id, flatten(result.protocol, "protocol."))
-            for path, folder in result.artifacts:
-                tracker.log_artifact(run_id, path, folder)
-            for f in ("metrics.json", "plots"):
-                tracker.log_artifact(run_id, ctx.out_dir / f, None if f == "metrics.json" else f)
-            tracker.finish(run_id)
+        with sigterm_as_interrupt():  # SIGTERM closes the run like Ctrl-C does
+            if tracker is not None:
+                run_id = ctx.run_id = tracker.start(name, _tags(cfg, data, h, job))
+                tracker.log_params(run_id, flatten(data))
+                _log_config_files(tracker, run_id, data, job)
+            for stage in _work(ctx, data, h, t0):
+                pass
+        metrics = ctx.metrics
         outcome = RunOutcome("finished", h, name, run_id, tracker.uri if tracker else None, metrics,
                              output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C (also inside Lightning's fit: see models.train), SIGTERM
+        reason = f"{interrupt_reason(e)} during {stage}"
         if tracker is not None and run_id is not None:
-            tracker.client.set_terminated(run_id, "KILLED")
+            tracker.kill(run_id, reason)
+        outcome = RunOutcome("killed", h, name, run_id, tracker.uri if tracker else None, error=reason,
+                             output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
+        write_status(job.output_dir, outcome)
+        print(f"[run] killed {name!r}: {reason} (run {run_id or '-'} closed as KILLED)", file=sys.stderr)
         raise
-    except Exception as e:  # noqa: BLE001 - recorded, then re-raised or reported by the sweep
+    except (Exception, SystemExit) as e:  # noqa: BLE001 - recorded, then re-raised or reported by the sweep
         not_run = isinstance(e, ConfigError)
         if tracker is not None and run_id is not None:
             tracker.fail(run_id, e, not_run=not_run)
         outcome = RunOutcome("not_run" if not_run else "failed", h, name, run_id, tracker.uri if tracker else None,
-                             error=f"{type(e).__name__}: {e}", output_dir=str(job.output_dir),
+                             error=f"{type(e).__name__}: {one_line(e)}", output_dir=str(job.output_dir),
                              seconds=time.perf_counter() - t0)
         write_status(job.output_dir, outcome)
-        print(f"[run] {outcome.status} {name!r}: {outcome.error}", file=sys.stderr)
-        if not job.multirun:
+        print(f"[run] {outcome.status} {name!r} during {stage}: {outcome.error}", file=sys.stderr)
+        if not job.multirun or isinstance(e, SystemExit):
             raise
         return outcome
     write_status(job.output_dir, outcome)
@@ -380,6 +393,56 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
                                 OmegaConf.select(cfg, "profile.name"),
                                 str(OmegaConf.select(cfg, "runtime.report_dir", default="reports")), job.base_dir, "[run]")
     return outcome
+
+
+def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
+    """The run's stages in order; yields the name of each stage as it starts (for messages) and
+    leaves the metrics in ``ctx.metrics``. The run is finished in the store at the end."""
+    cfg, tracker, run_id = ctx.cfg, ctx.tracker, ctx.run_id
+    timings: dict[str, float] = {}
+    yield "checks"
+    preflight(data)
+    yield "prepare"
+    t = time.perf_counter()
+    ctx.data_root = Path(_stage(cfg.stages.prepare)(ctx))
+    timings["time/prepare_s"] = time.perf_counter() - t
+    yield "input checks"
+    t = time.perf_counter()
+    _check_inputs(ctx)
+    timings["time/check_inputs_s"] = time.perf_counter() - t
+    if needs_training(cfg):
+        yield "train"
+        t = time.perf_counter()
+        trained = _stage(cfg.stages.train)(ctx)
+        timings["time/train_s"] = time.perf_counter() - t
+        ctx.checkpoint = trained.checkpoint
+        _log_training(ctx, trained)
+    yield "evaluate"
+    t = time.perf_counter()
+    result: EvalOutput = _stage(cfg.stages.evaluate)(ctx)
+    timings["time/evaluate_s"] = time.perf_counter() - t
+    yield "logging"
+    metrics = {k: float(v) for k, v in result.metrics.items() if v is not None}
+    _write_outputs(ctx, metrics, result, h)
+    timings["time/total_s"] = time.perf_counter() - t0
+    if tracker is not None and run_id is not None:
+        tracker.log_metrics(run_id, {**metrics, **timings})
+        tracker.log_params(run_id, flatten(result.protocol, "protocol."))
+        for path, folder in result.artifacts:
+            tracker.log_artifact(run_id, path, folder)
+        for f in ("metrics.json", "plots"):
+            tracker.log_artifact(run_id, ctx.out_dir / f, None if f == "metrics.json" else f)
+        tracker.finish(run_id)
+    ctx.metrics = metrics
+
+
+def _check_inputs(ctx: RunContext) -> None:
+    """Every input file of the scenes the run reads, before any long work (see
+    :func:`pcrcg.data.inputs.check_run_inputs`); skipped for data roots not in the layout (fakes)."""
+    from pcrcg.data.inputs import check_run_inputs
+
+    if ctx.data_root is not None:
+        check_run_inputs(ctx.cfg, ctx.data_root, log=print)
 
 
 def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dict[str, str]:
@@ -439,8 +502,10 @@ def _log_training(ctx: RunContext, trained: TrainOutput) -> None:
 
 def _write_outputs(ctx: RunContext, metrics: Mapping[str, float], result: EvalOutput, h: str) -> None:
     """``metrics.json`` and ``plots/recall_vs_points.png`` in the job's output folder."""
-    (ctx.out_dir / "metrics.json").write_text(json.dumps(
-        {"config_hash": h, "metrics": metrics, "protocol": result.protocol}, indent=1, default=str))
+    from pcrcg.cli import strict_json
+
+    (ctx.out_dir / "metrics.json").write_text(strict_json(  # NaN (no registered pair: RRE) as null
+        {"config_hash": h, "metrics": metrics, "protocol": result.protocol}, indent=1))
     try:
         from pcrcg.report.plots import plot_run_recall
 

@@ -83,6 +83,29 @@ class PairOutput:
     color_coverage: float = float("nan")
 
 
+def plain(value: Any) -> Any:
+    """``value`` with OmegaConf containers, tuples, paths and numpy scalars/arrays made plain
+    (dict, list, str, int, float, bool, None) — what ``torch.load(weights_only=True)`` reads."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(value, (DictConfig, ListConfig)):
+            value = OmegaConf.to_container(value, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set)):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str, torch.Tensor)):
+        return value
+    return str(value)
+
+
 def build_lifter_from(lifting: Mapping[str, Any] | None):
     """A ColorLifter from a mapping with ``projection``/``features``/``encoder2d``/``matcher2d`` nodes,
     or None when nothing is lifted (geometry only; the lifting package is then not even imported)."""
@@ -181,6 +204,12 @@ class PCRCGModule(L.LightningModule):
                       on_step=False)
         if coverage == coverage:
             self.log("val/color_coverage", coverage, batch_size=1, on_epoch=True, on_step=False)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Hyper-parameters as plain dicts, lists, strings and numbers, so that the checkpoint reads
+        with ``torch.load(weights_only=True)`` (no code runs when it is loaded)."""
+        if "hyper_parameters" in checkpoint:
+            checkpoint["hyper_parameters"] = plain(checkpoint["hyper_parameters"])
 
     def on_validation_epoch_start(self) -> None:
         self._val_recalls = []

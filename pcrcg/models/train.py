@@ -11,6 +11,12 @@
   ``<out_dir>/logs/version_<k>/metrics.csv`` (one version per start). This is the contract of
   :func:`pcrcg.pipeline.train_model`.
 * :func:`load_module` ``(checkpoint, device=None) -> PCRCGModule`` in eval mode.
+* :func:`read_checkpoint` ``(path) -> dict``: a checkpoint read without the ability to run code
+  (``torch.load(weights_only=True)``: tensors, plain containers and primitives only; the module
+  saves its hyper-parameters as such) and checked to be one of this project's; a crafted pickle, a
+  text file, a state-dict-only or corrupt file is a :class:`~pcrcg.errors.DataError` naming it. A
+  ``last.ckpt`` that fails this check is moved aside (``last.ckpt.bad-<time>``) with a one-line
+  warning and training starts afresh, so that it does not block its config on every relaunch.
 * :func:`infer` ``(checkpoint_or_module, root, split, device=None, max_pairs=None) -> Iterator[PairOutput]``:
   per-pair outputs on a benchmark (``3DMatch``/``3DLoMatch``) or split, each fragment in its own frame.
 * :func:`infer_clouds` ``(module, src_points, tgt_points, src_views=(), tgt_views=()) -> PairOutput``:
@@ -22,6 +28,9 @@ from __future__ import annotations
 
 import copy
 import os
+import pickle
+import signal
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -34,7 +43,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.errors import ConfigError
+from pcrcg.errors import ConfigError, DataError, one_line
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import FragmentOutput, PairOutput, PCRCGModule, build_lifter_from
 
@@ -222,8 +231,8 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
     external_logger = logger not in (None, False)
     trainer, last_cb, best_cb = build_trainer(tcfg, out, logger, [hist, *callbacks])
     last = _checkpoint_dir(out) / "last.ckpt"
-    ckpt = str(last) if tcfg.get("resume", True) and last.is_file() else None
-    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    ckpt = str(last) if tcfg.get("resume", True) and last.is_file() and _resumable(last, module) else None
+    _fit(trainer, module, datamodule, ckpt)
     best = best_cb.best_model_path
     metrics = {"train/global_step": float(trainer.global_step), "train/epochs": float(trainer.current_epoch),
                "train/seconds": time.perf_counter() - t0, "train/skipped_pairs": float(module.skipped_pairs),
@@ -235,6 +244,109 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
             "neighbor_limits": list(datamodule.limits or ())}
 
 
+def _fit(trainer: L.Trainer, module: PCRCGModule, datamodule: PairDataModule, ckpt: str | None) -> None:
+    """``trainer.fit`` that gives a Ctrl-C back as ``KeyboardInterrupt``: Lightning catches it, saves
+    (``LastCheckpoint.on_exception``), ignores further SIGINTs and calls ``sys.exit(1)``, which would
+    look like an ordinary failure to the caller and leave Ctrl-C ignored for the rest of the process."""
+    seen: list[BaseException] = []
+
+    class _Seen(Callback):
+        def on_exception(self, trainer, pl_module, exception):  # noqa: ANN001
+            seen.append(exception)
+
+    trainer.callbacks.append(_Seen())
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
+    except SystemExit:
+        interrupt = next((e for e in seen if isinstance(e, KeyboardInterrupt)), None)
+        if interrupt is None:
+            raise
+        raise interrupt.with_traceback(None) from None
+    finally:
+        if handler is not None:
+            try:
+                signal.signal(signal.SIGINT, handler)
+            except ValueError:  # pragma: no cover - not the main thread
+                pass
+
+
+def _resumable(last: Path, module: PCRCGModule) -> bool:
+    """Whether ``last.ckpt`` can be resumed from; a file that cannot (corrupt, crafted, another model)
+    is moved aside with a one-line warning, and training starts afresh."""
+    try:
+        ck = read_checkpoint(last)
+        if "optimizer_states" not in ck or "global_step" not in ck:
+            raise DataError(last, "holds no training state (optimizer_states, global_step): not a last.ckpt")
+        _check_state_dict(module, ck["state_dict"], last)
+        return True
+    except DataError as e:
+        aside = last.with_name(f"{last.name}.bad-{time.strftime('%Y%m%d-%H%M%S')}")
+        os.replace(last, aside)
+        print(f"[train] warning: cannot resume: {one_line(e)}; moved it to {aside.name} and starting afresh",
+              file=sys.stderr, flush=True)
+        return False
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def read_checkpoint(checkpoint: str | Path) -> dict[str, Any]:
+    """A checkpoint of this project, read with ``torch.load(weights_only=True)`` (no code runs).
+
+    It must hold a ``state_dict`` and ``hyper_parameters`` with the ``model`` node; anything else
+    is a DataError naming the file (one line).
+    """
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ConfigError("checkpoint", str(path), "an existing checkpoint file written by pcrcg training")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "Detected pickle protocol 4": the error below says it all
+            ck = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise DataError(path, f"refused by torch.load(weights_only=True): {_unpickling_reason(e)}; "
+                              "only tensors and plain values are read, no code runs") from None
+    except Exception as e:  # noqa: BLE001 - zip/storage/legacy-format errors: a file that is not a checkpoint
+        raise DataError(path, f"is not a readable torch checkpoint, corrupt or truncated? "
+                              f"({type(e).__name__}: {one_line(e, 160)})") from None
+    if isinstance(ck, Mapping) and ck and all(isinstance(v, torch.Tensor) for v in ck.values()):
+        raise DataError(path, "is a bare state dict (weights without the model's hyper_parameters): give a "
+                              "checkpoint written by pcrcg training (checkpoints/<hash>/model.ckpt, best.ckpt)")
+    if not isinstance(ck, Mapping) or not isinstance(ck.get("state_dict"), Mapping):
+        raise DataError(path, "holds no 'state_dict': not a checkpoint of pcrcg training")
+    hp = ck.get("hyper_parameters")
+    if not isinstance(hp, Mapping) or not isinstance(hp.get("model"), Mapping):
+        raise DataError(path, "holds a state dict without the model's hyper_parameters (a bare state dict?): "
+                              "give a checkpoint written by pcrcg training (checkpoints/<hash>/model.ckpt)")
+    return dict(ck)
+
+
+def _unpickling_reason(e: BaseException) -> str:
+    """The useful line of torch's weights-only refusal (``Unsupported global: GLOBAL os.system``)."""
+    import re
+
+    text = str(e)
+    m = re.search(r"GLOBAL (\S+)", text)
+    if m:
+        return f"it would call {m.group(1)} when loaded (a crafted or foreign pickle)"
+    m = re.search(r"WeightsUnpickler error:\s*(.+)", text)
+    if m:
+        return f"not a torch checkpoint ({m.group(1).strip()[:120]})"
+    return f"not a torch checkpoint ({one_line(e, 120)})"
+
+
+def _check_state_dict(module: torch.nn.Module, sd: Mapping[str, Any], path: Path) -> None:
+    own = module.state_dict()
+    missing = [k for k in own if k not in sd]
+    unexpected = [k for k in sd if k not in own]
+    shapes = [k for k in own if k in sd and hasattr(sd[k], "shape") and tuple(sd[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or shapes:
+        first = (missing or unexpected or shapes)[0]
+        raise DataError(path, f"does not fit the model ({len(missing)} missing, {len(unexpected)} unexpected, "
+                              f"{len(shapes)} mis-shaped weights; first: {first})")
+
+
 # --------------------------------------------------------------------------- inference
 
 
@@ -242,14 +354,17 @@ def load_module(checkpoint: str | Path, device: str | torch.device | None = None
     """The trained module in eval mode. A 2D encoder is rebuilt without its pretrained file (its
     trained weights are in the checkpoint), so inference needs nothing but the checkpoint."""
     path = Path(checkpoint)
-    if not path.is_file():
-        raise ConfigError("checkpoint", str(path), "an existing Lightning checkpoint file")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    hp = ckpt.get("hyper_parameters", {})
+    ckpt = read_checkpoint(path)
+    hp = ckpt["hyper_parameters"]
     lifting = copy.deepcopy(hp.get("lifting"))
     if lifting and lifting.get("encoder2d"):
         lifting["encoder2d"] = {**lifting["encoder2d"], "name": "scratch", "weights": None}
-    module = PCRCGModule(hp["model"], optim=hp.get("optim"), lifting=lifting)
+    try:
+        module = PCRCGModule(dict(hp["model"]), optim=hp.get("optim"), lifting=lifting)
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(path, f"its hyper_parameters do not describe a model ({type(e).__name__}: "
+                              f"{one_line(e, 160)})") from None
+    _check_state_dict(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return module.to(dev).eval()
@@ -305,7 +420,7 @@ def save_pair_output(out: PairOutput, path: str | Path) -> Path:
 
 
 def load_pair_output(path: str | Path) -> PairOutput:
-    with np.load(path) as z:
+    with np.load(path, allow_pickle=False) as z:
         frag = lambda p: FragmentOutput(z[f"{p}_points"], z[f"{p}_descriptors"], z[f"{p}_overlap"],  # noqa: E731
                                         z[f"{p}_matchability"])
         return PairOutput(str(z["scene"]), int(z["i"]), int(z["j"]), frag("src"), frag("tgt"), z["transform"],

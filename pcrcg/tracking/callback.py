@@ -1,7 +1,9 @@
 """Hydra callback of ``python -m pcrcg.run -m``: set up before the jobs, sum up after them.
 
 ``on_multirun_start`` (parent process, before any job):
-  * checks every value the sweep will take (``hydra.sweeper.params`` and command-line sweeps);
+  * checks every value the sweep will take (``hydra.sweeper.params`` and command-line sweeps), then
+    composes and validates every job's config as the job will (a sweep value of any key, like
+    ``trainer.optim.lr=0.1,abc``, fails here, naming the job, before the first job starts);
   * creates the MLflow store and the experiment once (parallel jobs that open a brand-new
     SQLite store at once race in its schema migration);
   * prepares the data set once when all jobs share it (jobs would otherwise build it twice).
@@ -33,10 +35,47 @@ _DATA_KEYS = ("data", "profile", "data_seed", "paths")
 
 
 def _sweep_overrides(config: DictConfig) -> tuple[list[str], dict[str, Any]]:
+    """The command line's task overrides and the sweeper's ``params`` (``{}`` when there are none:
+    a plain command-line sweep without an experiment file)."""
     task = [str(o) for o in config.hydra.overrides.task]
-    params = OmegaConf.to_container(config.hydra.sweeper.get("params") or {}, resolve=False) or {}
+    node = config.hydra.sweeper.get("params")
+    params = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else dict(node or {})
     assert isinstance(params, dict)
-    return task, params
+    return task, {str(k): v for k, v in params.items()}
+
+
+def _job_overrides(config: DictConfig, task: list[str], params: dict[str, Any]) -> list[list[str]] | None:
+    """Every job's overrides, as Hydra's basic sweeper will make them (None for other sweepers)."""
+    target = str(OmegaConf.select(config, "hydra.sweeper._target_", default=""))
+    if not target.endswith("BasicSweeper"):
+        return None
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides([*(f"{k}={v}" for k, v in params.items()), *task])
+    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def _validate_jobs(config: DictConfig, jobs: list[list[str]], dirs: tuple[Path, ...]) -> None:
+    """Compose each job's config as the launcher will and validate it (ConfigError on the first bad one)."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    from pcrcg.config import validate_run_config
+    from pcrcg.errors import ConfigError
+
+    loader = GlobalHydra.instance().hydra.config_loader  # type: ignore[union-attr]
+    for job in jobs:
+        try:
+            cfg = loader.load_sweep_config(config, job)
+        except Exception as e:  # noqa: BLE001 - Hydra's own composition errors (a key that does not exist)
+            raise ConfigError(" ".join(job), "(composition)", f"a valid override ({' '.join(str(e).split())})") from None
+        choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None}
+        body = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"])
+        try:
+            validate_run_config(body, choices, dirs)
+        except ConfigError as e:
+            e.args = (f"{e} (job: {' '.join(job) or 'defaults'})",)
+            raise
 
 
 def _base_dir(config: DictConfig) -> Path:
@@ -71,6 +110,9 @@ class TrackingCallback(Callback):
         try:
             check_overrides([o for o in task if not o.startswith("hydra")], dirs)
             check_sweep_params(params, dirs)
+            jobs = _job_overrides(config, task, params)
+            if jobs is not None:
+                _validate_jobs(config, jobs, dirs)
         except ConfigError as e:
             _stop(f"pcrcg.run: {e} (in the sweep; no job was started)", 2)
         base = _base_dir(config)

@@ -2,12 +2,19 @@
 
 Everything goes through an explicit ``MlflowClient`` bound to one store URI (no global
 ``mlflow`` state), so parallel jobs and several stores in one process do not interfere.
+
+Every run records the process that owns it (tags ``pcrcg.host``, ``pcrcg.pid``, ``pcrcg.pid_start``:
+the process's start time, so that a reused pid is not taken for the owner). A run left RUNNING by a
+process that is gone (SIGKILL, a power cut) is *stale*: :meth:`RunTracker.close_stale` ends such runs
+of a config hash as KILLED before the config runs again, and the report leaves them out
+(:func:`is_stale`). Runs owned by another host are never judged stale from here.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import socket
 import tempfile
 import time
 import traceback
@@ -15,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from pcrcg.tracking.store import client, ensure_experiment
+from pcrcg.tracking.store import client, ensure_experiment, ensure_store
 
 # MLflow's per-request limits (log_batch) and its longest param value
 _MAX_PARAMS = 100
@@ -32,6 +39,54 @@ TAG_PROFILE = "profile"
 TAG_ERROR = "error"
 TAG_ERROR_TYPE = "error_type"
 TAG_NOT_RUN = "not_run"
+TAG_HOST = "pcrcg.host"
+TAG_PID = "pcrcg.pid"
+TAG_PID_START = "pcrcg.pid_start"
+TAG_CLOSED_STALE = "closed_stale"
+
+
+def process_start(pid: int) -> str | None:
+    """When process ``pid`` started (clock ticks since boot, from /proc), or None where unknown."""
+    try:
+        stat = Path(f"/proc/{int(pid)}/stat").read_text()
+    except (OSError, ValueError):
+        return None
+    # the command name (field 2) may hold spaces and parentheses: count fields after the last ')'
+    return stat.rsplit(")", 1)[-1].split()[19]
+
+
+def owner_tags() -> dict[str, str]:
+    """Tags naming this process as a run's owner."""
+    pid = os.getpid()
+    return {TAG_HOST: socket.gethostname(), TAG_PID: str(pid), TAG_PID_START: process_start(pid) or ""}
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def is_stale(status: str, tags: Mapping[str, Any]) -> bool:
+    """A RUNNING run whose owning process (on this host) is gone."""
+    if status != "RUNNING":
+        return False
+    host, pid = tags.get(TAG_HOST), tags.get(TAG_PID)
+    if not host or not pid or host != socket.gethostname():
+        return False
+    try:
+        pid_i = int(pid)
+    except (TypeError, ValueError):
+        return False
+    if not _pid_alive(pid_i):
+        return True
+    started = tags.get(TAG_PID_START) or ""
+    now = process_start(pid_i)
+    return bool(started and now and started != now)  # the pid now belongs to another process
 
 
 @dataclass(frozen=True)
@@ -47,6 +102,7 @@ class RunTracker:
     def __init__(self, uri: str, experiment_name: str):
         self.uri = uri
         self.experiment_name = experiment_name
+        ensure_store(uri)
         self.client = client(uri)
         self.experiment_id = ensure_experiment(self.client, experiment_name, uri)
 
@@ -66,8 +122,32 @@ class RunTracker:
 
     # ------------------------------------------------------------------ life cycle
     def start(self, run_name: str, tags: Mapping[str, str]) -> str:
-        run = self.client.create_run(self.experiment_id, run_name=run_name, tags=dict(tags))
+        run = self.client.create_run(self.experiment_id, run_name=run_name, tags={**owner_tags(), **dict(tags)})
         return run.info.run_id
+
+    def close_stale(self, config_hash: str) -> list[str]:
+        """End as KILLED the RUNNING runs of ``config_hash`` whose process is gone; their ids."""
+        runs = self.client.search_runs(
+            [self.experiment_id],
+            filter_string=f"tags.{TAG_HASH} = '{config_hash}' and attributes.status = 'RUNNING'",
+            max_results=100,
+        )
+        closed = []
+        for r in runs:
+            if is_stale(r.info.status, r.data.tags):
+                self.set_tags(r.info.run_id, {TAG_CLOSED_STALE: "true", TAG_ERROR_TYPE: "Killed",
+                                              TAG_ERROR: f"process {r.data.tags.get(TAG_PID)} ended without "
+                                                         "closing the run (killed?); closed by a relaunch"})
+                self.client.set_terminated(r.info.run_id, "KILLED")
+                closed.append(r.info.run_id)
+        return closed
+
+    def kill(self, run_id: str, reason: str) -> None:
+        """End the run as KILLED (Ctrl-C, SIGTERM), saying why."""
+        try:
+            self.set_tags(run_id, {TAG_ERROR_TYPE: "Interrupted", TAG_ERROR: reason})
+        finally:
+            self.client.set_terminated(run_id, "KILLED")
 
     def finish(self, run_id: str) -> None:
         self.client.set_terminated(run_id, "FINISHED")

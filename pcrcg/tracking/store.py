@@ -6,8 +6,10 @@ environment variable ``MLFLOW_TRACKING_URI``, else ``sqlite:///<base_dir>/mlflow
 absolute against ``base_dir`` so that jobs started elsewhere (submitit, ray) share it.
 
 A brand-new SQLite store must be created once, before parallel jobs open it: they race
-in its schema migration otherwise. :func:`ensure_store` does that (the multirun callback
-calls it in the parent process).
+in its schema migration otherwise (``duplicate column name: step``). :func:`ensure_store` does
+that under a file lock (``<db>.lock``), so that separate commands started at once (``for w in 3 7; do
+python -m pcrcg.run ... & done``) create it once too; the multirun callback calls it in the parent
+process and every run calls it before its first query.
 
 ``mlflow`` is imported lazily: it costs about 2 s.
 """
@@ -76,12 +78,24 @@ def client(uri: str) -> "MlflowClient":
     return MlflowClient(tracking_uri=uri)
 
 
+_READY: set[str] = set()
+
+
 def ensure_store(uri: str) -> None:
-    """Create the store's schema now if it is a new SQLite file (one process, before jobs start)."""
+    """Create the store's schema now if it is a new SQLite file, under a file lock: one process
+    creates it, the others wait and find it made."""
+    if uri in _READY:
+        return
     db = sqlite_path(uri)
-    if db is not None:
+    if db is None or str(db) == ":memory:":
+        client(uri).search_experiments(max_results=1)
+    else:
+        from filelock import FileLock
+
         db.parent.mkdir(parents=True, exist_ok=True)
-    client(uri).search_experiments(max_results=1)
+        with FileLock(str(db) + ".lock"):
+            client(uri).search_experiments(max_results=1)
+    _READY.add(uri)
 
 
 def ensure_experiment(mlflow_client: "MlflowClient", name: str, uri: str, retries: int = 5) -> str:
