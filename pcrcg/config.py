@@ -325,10 +325,9 @@ def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = Non
 
     ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known;
     ``data``: ``cfg`` already resolved to plain containers (saves resolving it again).
-    """
     An error names the key the user set: a value interpolated from another key
     (``trainer.max_epochs: ${oc.select:profile.train.max_epochs,30}``) is reported as that key.
-    if data is None:
+    """
     try:
         return _validate_run_config(cfg, choices, search_dirs, data)
     except ConfigError as e:
@@ -364,6 +363,7 @@ def source_key(cfg: Any, key: str) -> str:
 
 def _validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None,
                          search_dirs: Sequence[Path], data: Mapping[str, Any] | None) -> RunSchema:
+    if data is None:
         try:
             data = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
         except OmegaConfBaseException as e:
@@ -437,7 +437,6 @@ TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_tr
 # trainer.optim.name (pcrcg.models.module.OptimConfig)
 OPTIMIZERS = ("sgd", "adam")
 
-GROUP_RULES: dict[str, Any] = {
 def _optional_int_at_least(low: int):
     """null, or an integer >= ``low`` (``max_steps``: null means no cap; 0 is not "no cap")."""
     def check(k: str, v: Any) -> None:
@@ -465,6 +464,7 @@ def _unit_interval(setting: str, value: Any) -> None:
         raise ConfigError(setting, value, "a number in [0, 1)")
 
 
+GROUP_RULES: dict[str, Any] = {
     "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
     "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
     "features.dim": lambda k, v: _int_at_least(k, v, 0),
@@ -474,8 +474,6 @@ def _unit_interval(setting: str, value: Any) -> None:
     "matcher2d.method": lambda k, v: _one_of(k, v, ("sift", "orb")),
     "matcher2d.ratio": _fraction,
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
-    "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
-    "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
     "trainer.max_steps": _optional_int_at_least(1),
     "trainer.limit_train_batches": _batches,
     "trainer.limit_val_batches": lambda k, v: None if v == 0 else _batches(k, v),
@@ -500,6 +498,8 @@ def _unit_interval(setting: str, value: Any) -> None:
     "model.loss.max_points": lambda k, v: _int_at_least(k, v, 1),
     "registration.ransac.distance": _positive,
     "registration.ransac.max_iterations": lambda k, v: _int_at_least(k, v, 1),
+    "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
+    "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
     "trainer.optim.name": lambda k, v: _one_of(k, v, OPTIMIZERS),
     "trainer.optim.lr": _positive,
     "data.workers": lambda k, v: _int_at_least(k, v, 1),
