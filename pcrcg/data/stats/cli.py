@@ -51,8 +51,11 @@ from typing import Sequence
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m pcrcg.data.stats", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m pcrcg.data.stats", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Statistics of data sets side by side: one column per data set, printed as Markdown and "
+                    "written to <out>.md, <out>.json and <out>.png.",
+        epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("roots", nargs="*", metavar="ROOT", help="data sets in the 3DMatch layout")
     p.add_argument("--out", default="reports/data/stats", help="output prefix: <out>.md, .json, .png")
     p.add_argument("--pairs", type=int, default=30,
