@@ -99,3 +99,53 @@ def test_circle_loss_scale_is_the_one_the_official_trainings_ran_with():
     assert LossConfig.from_mapping(cfg.model.loss).log_scale == 16
     # the configs' 24 is a setting
     assert LossConfig.from_mapping(_run_cfg("model.loss.log_scale=24").model.loss).log_scale == 24
+
+
+# --------------------------------------------------------------------------- item 7: RANSAC budget
+
+
+def _ransac_problem(K=400, seed=0):
+    from pcrcg.geometry import make_transform, random_rotation, transform_points
+    from pcrcg.registration.synthetic import box_room
+
+    rng = np.random.default_rng(seed)
+    pts, _ = box_room(rng, 3 * K)
+    src = pts[rng.choice(len(pts), K, replace=False)]
+    T = make_transform(random_rotation(rng), rng.normal(size=3))
+    tgt = transform_points(T, src) + rng.normal(scale=0.005, size=(K, 3))
+    out = rng.random(K) >= 0.3
+    tgt[out] = transform_points(T, pts[rng.choice(len(pts), int(out.sum()))])
+    return src, tgt, np.stack([np.arange(K), np.arange(K)], 1), T
+
+
+def test_open3d_010_budget_stops_after_the_validated_hypotheses():
+    from pcrcg.registration import RansacConfig, ransac
+
+    src, tgt, corr, T = _ransac_problem()
+    capped = ransac(src, tgt, corr, RansacConfig(max_iterations=50000, max_validation=100, confidence=1.0), seed=0)
+    assert capped.n_checked == 100 and capped.iterations < 50000
+    # the same draws without the cap: the first 100 validated hypotheses are the same ones, the rest go on
+    full = ransac(src, tgt, corr, RansacConfig(max_iterations=capped.iterations, confidence=1.0), seed=0)
+    assert full.n_checked == 100 and np.allclose(full.transform, capped.transform)
+    longer = ransac(src, tgt, corr, RansacConfig(max_iterations=50000, confidence=1.0), seed=0)
+    assert longer.iterations == 50000 and longer.n_checked > 100
+
+
+def test_the_run_defaults_to_the_published_numbers_ransac_budget():
+    from pcrcg.evaluation.run import _protocol, configs_from
+    from pcrcg.registration import RegistrationConfig
+
+    rcfg, bcfg = configs_from(_run_cfg())
+    assert rcfg.ransac.max_validation == 1000 and rcfg.ransac.confidence == 1.0
+    assert bcfg.ransac.max_validation == 1000  # FPFH + RANSAC: the same budget
+    assert rcfg.ransac.budget.startswith("Open3D 0.10")
+    assert _protocol(rcfg, {}, {}, 0, False)["ransac_budget"] == rcfg.ransac.budget
+    early, _ = configs_from(_run_cfg("registration=early_exit"))
+    assert early.ransac.max_validation is None and early.ransac.confidence == 0.999
+    assert early.ransac.budget.startswith("Open3D >= 0.12")
+    # Open3D's own RANSAC (>= 0.12) has no validation budget: refused, not ignored
+    with pytest.raises(ConfigError, match="max_validation"):
+        RegistrationConfig(backend="open3d", ransac={"max_validation": 1000})
+    # the experiment that reports recall both ways
+    cfg = load_run_config(["profile=tiny", "+experiment=ransac_budget", "registration=early_exit"])
+    assert cfg.experiment_name == "ransac_budget" and cfg.registration.ransac.max_validation is None

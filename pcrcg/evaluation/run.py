@@ -289,6 +289,7 @@ def _protocol(rcfg: RegistrationConfig, gt: Mapping[str, SceneGT], th: Mapping[s
         "sampling": rcfg.sampling,
         "mutual": rcfg.mutual,
         "ransac": {"backend": rcfg.backend, **dataclasses.asdict(rcfg.ransac)},
+        "ransac_budget": rcfg.ransac.budget,
         "thresholds": dict(th),
         "seed": seed,
     }

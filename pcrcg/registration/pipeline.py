@@ -87,6 +87,10 @@ class RegistrationConfig:
             raise ConfigError("registration.n_points", list(self.n_points), "a non-empty list of integers >= 3")
         if isinstance(self.ransac, Mapping):
             self.ransac = RansacConfig.from_dict(dict(self.ransac))
+        if self.backend == "open3d" and self.ransac.max_validation is not None:
+            raise ConfigError("registration.ransac.max_validation", self.ransac.max_validation,
+                              "null with registration.backend=open3d (Open3D >= 0.12 has no validation budget; "
+                              "the torch backend reproduces Open3D 0.10's)")
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "RegistrationConfig":

@@ -33,6 +33,17 @@ source point's descriptor lazily inside the loop, scored by the same geometric f
 stopped after 1,000 validated hypotheses (``RANSACConvergenceCriteria(50000, 1000)``). In Open3D
 >= 0.12 the second argument is a confidence, clamped to 1.0: the same call then runs all 50,000
 iterations and validates every hypothesis that passes the checkers.
+
+Both budgets are settings of :class:`RansacConfig` (:attr:`RansacConfig.budget` names them):
+
+* Open3D 0.10, the budget behind Predator's and PCR-CG's published numbers (both pin
+  ``open3d==0.10``): ``max_validation=1000, confidence=1.0``: stop after the 1,000th hypothesis that
+  passes both checkers and is scored (or at ``max_iterations`` draws), no early termination;
+* Open3D >= 0.12: ``max_validation=None`` and early termination at ``confidence`` (0.999 here;
+  Open3D's formula), at most ``max_iterations`` draws.
+
+The run config defaults to the first (``conf/registration/default.yaml``); ``registration=early_exit``
+selects the second. The dataclass itself defaults to the second (the library's behaviour).
 """
 
 from __future__ import annotations
@@ -61,6 +72,8 @@ class RansacConfig:
     score: ``overlap`` ranks hypotheses as Open3D 0.10-0.20 (and so Predator) do, by the fraction
     of all source points with a target point within ``distance``; ``correspondences`` by the
     number of inlier correspondences (classic RANSAC, and Open3D's current master).
+    max_validation: stop once this many hypotheses have passed both checkers and been scored
+    (Open3D 0.10's ``RANSACConvergenceCriteria(max_iteration, max_validation)``); None: no cap.
     """
 
     distance: float = 0.05
@@ -74,6 +87,7 @@ class RansacConfig:
     dtype: str = "float32"
     threads: int = 1
     score: str = "overlap"
+    max_validation: int | None = None
 
     def __post_init__(self) -> None:
         if self.distance <= 0:
@@ -92,6 +106,20 @@ class RansacConfig:
             raise ConfigError("ransac.dtype", self.dtype, "float32 or float64")
         if self.score not in ("overlap", "correspondences"):
             raise ConfigError("ransac.score", self.score, "overlap | correspondences")
+        if self.max_validation is not None and (isinstance(self.max_validation, bool) or int(self.max_validation) < 1):
+            raise ConfigError("ransac.max_validation", self.max_validation, "an integer >= 1, or null (no cap)")
+
+    @property
+    def budget(self) -> str:
+        """In words: which Open3D's RANSAC budget these settings reproduce."""
+        if self.max_validation is not None:
+            text = (f"Open3D 0.10 criteria ({self.max_iterations}, {self.max_validation}): stops after "
+                    f"{self.max_validation} validated hypotheses or {self.max_iterations} draws")
+            return text + ("" if self.confidence >= 1.0 else f", early exit at confidence {self.confidence}")
+        if self.confidence < 1.0:
+            return (f"Open3D >= 0.12: up to {self.max_iterations} draws, early exit at confidence "
+                    f"{self.confidence}, no validation cap")
+        return f"every one of {self.max_iterations} draws (Open3D >= 0.12 with confidence 1.0)"
 
     @classmethod
     def from_dict(cls, d) -> "RansacConfig":
@@ -295,6 +323,7 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
             ls, lq = (es * es).sum(1), (eq * eq).sum(1)
             ok &= (ls >= lq * sim2) & (lq >= ls * sim2)
         idx = idx[ok]
+        pos = torch.nonzero(ok).reshape(-1)  # each surviving sample's place in the batch (draw order)
         if idx.shape[0] == 0:
             continue
         ps, pq = S[idx], Q[idx]  # (h, n, 3)
@@ -304,6 +333,12 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
         if not bool(ok.any()):
             continue
         R, t = R[ok], t[ok]
+        if cfg.max_validation is not None and n_checked + R.shape[0] >= cfg.max_validation:
+            # Open3D 0.10: the max_validation-th validated hypothesis is the last one scored
+            keep = int(cfg.max_validation) - n_checked
+            R, t = R[:keep], t[:keep]
+            drawn -= b - (int(pos[ok][keep - 1]) + 1)  # the draws up to and including it
+            limit = drawn
         n_checked += R.shape[0]
         count_c, err_c = _score(R, t, feats, thr2)
         count, err2 = overlap(R, t) if overlap is not None else (count_c, err_c)
@@ -374,6 +409,14 @@ def _from_o3d(res, src_c: np.ndarray, tgt_c: np.ndarray, distance: float) -> Ran
     return _evaluate(np.asarray(res.transformation, dtype=np.float64).copy(), src_c, tgt_c, distance, -1)
 
 
+def _no_validation_cap(cfg: RansacConfig) -> None:
+    """The installed Open3D (>= 0.12) has no validation budget: refuse one rather than ignore it."""
+    if cfg.max_validation is not None:
+        raise ConfigError("ransac.max_validation", cfg.max_validation,
+                          "null with Open3D's own RANSAC (registration.backend=open3d): Open3D >= 0.12 has no "
+                          "validation budget; the torch backend reproduces Open3D 0.10's")
+
+
 def ransac_open3d(
     src_points: np.ndarray,
     tgt_points: np.ndarray,
@@ -389,6 +432,7 @@ def ransac_open3d(
     import open3d as o3d
 
     cfg = cfg or RansacConfig()
+    _no_validation_cap(cfg)
     reg = o3d.pipelines.registration
     corr = np.asarray(correspondences, dtype=np.int32).reshape(-1, 2)
     if len(corr) < cfg.ransac_n:
@@ -427,6 +471,7 @@ def ransac_feature_matching_open3d(
     import open3d as o3d
 
     cfg = cfg or RansacConfig()
+    _no_validation_cap(cfg)
     reg = o3d.pipelines.registration
     if seed is not None:
         o3d.utility.random.seed(int(seed))
