@@ -149,3 +149,31 @@ def test_the_run_defaults_to_the_published_numbers_ransac_budget():
     # the experiment that reports recall both ways
     cfg = load_run_config(["profile=tiny", "+experiment=ransac_budget", "registration=early_exit"])
     assert cfg.experiment_name == "ransac_budget" and cfg.registration.ransac.max_validation is None
+
+
+# --------------------------------------------------------------------------- item 8: fragments with fewer than N points
+
+
+def test_fragments_with_fewer_points_are_resampled_as_predator_does():
+    from pcrcg.evaluation.run import configs_from
+    from pcrcg.registration import FragmentOutput, RegistrationConfig, register_features
+    from pcrcg.registration.sampling import sample_indices
+
+    rng = np.random.default_rng(0)
+    scores = rng.random(300)
+    idx = sample_indices(scores, 1000, "prob", rng, fewer="with_replacement")
+    assert len(idx) == 1000 and idx.max() < 300 and len(np.unique(idx)) < 300 < len(idx)
+    assert np.array_equal(sample_indices(scores, 1000, "prob", rng, fewer="whole"), np.arange(300))
+    # exactly N points: all of them once, either way (Predator samples all N without replacement)
+    assert np.array_equal(sample_indices(scores, 300, "prob", rng, fewer="with_replacement"), np.arange(300))
+    # the run's default is Predator's; the pipeline samples N points of a small fragment
+    assert configs_from(_run_cfg())[0].fewer_points == "with_replacement"
+    pts = rng.normal(size=(200, 3)).astype(np.float32)
+    frag = FragmentOutput(pts, rng.normal(size=(200, 8)), np.ones(200), np.ones(200))
+    reg = register_features(frag, frag, 500, RegistrationConfig(fewer_points="with_replacement",
+                                                                 ransac={"max_iterations": 200}))
+    assert len(reg.src_idx) == 500 and len(reg.correspondences) == 500
+    reg = register_features(frag, frag, 500, RegistrationConfig(fewer_points="whole", ransac={"max_iterations": 200}))
+    assert len(reg.src_idx) == 200
+    with pytest.raises(ConfigError, match="fewer_points"):
+        RegistrationConfig(fewer_points="pad")

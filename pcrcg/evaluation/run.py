@@ -287,6 +287,7 @@ def _protocol(rcfg: RegistrationConfig, gt: Mapping[str, SceneGT], th: Mapping[s
         "recall": "per scene, then mean over scenes; j - i > 1 only",
         "predator_variant": predator_variant,
         "sampling": rcfg.sampling,
+        "fewer_points": rcfg.fewer_points,
         "mutual": rcfg.mutual,
         "ransac": {"backend": rcfg.backend, **dataclasses.asdict(rcfg.ransac)},
         "ransac_budget": rcfg.ransac.budget,

@@ -18,7 +18,7 @@ import torch
 from pcrcg.errors import ConfigError
 from pcrcg.registration.matching import match_descriptors
 from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d, torch_threads
-from pcrcg.registration.sampling import SAMPLING_MODES, sample_indices
+from pcrcg.registration.sampling import FEWER_POINTS, SAMPLING_MODES, sample_indices
 
 BACKENDS = ("torch", "open3d")
 DEFAULT_N_POINTS = (5000, 2500, 1000, 500, 250)
@@ -65,12 +65,14 @@ def _np(x, dtype) -> np.ndarray:
 class RegistrationConfig:
     """Settings of Predator's registration (the ``registration`` config group).
 
-    sampling: ``prob`` | ``topk`` | ``random``; mutual: mutual nearest neighbours only (falls back
+    sampling: ``prob`` | ``topk`` | ``random``; fewer_points: a fragment with fewer than N points gives
+    N drawn uniformly ``with_replacement`` (Predator's script) or is used ``whole``; mutual: mutual nearest neighbours only (falls back
     to all matches when fewer than ``3 * ransac_n`` survive, like Open3D); backend: ``torch``
     (ours) | ``open3d`` (reference); device: torch device of matching and RANSAC.
     """
 
     sampling: str = "prob"
+    fewer_points: str = "whole"
     mutual: bool = False
     backend: str = "torch"
     device: str = "cpu"
@@ -80,6 +82,8 @@ class RegistrationConfig:
     def __post_init__(self) -> None:
         if self.sampling not in SAMPLING_MODES:
             raise ConfigError("registration.sampling", self.sampling, " | ".join(SAMPLING_MODES))
+        if self.fewer_points not in FEWER_POINTS:
+            raise ConfigError("registration.fewer_points", self.fewer_points, " | ".join(FEWER_POINTS))
         if self.backend not in BACKENDS:
             raise ConfigError("registration.backend", self.backend, " | ".join(BACKENDS))
         self.n_points = tuple(int(n) for n in self.n_points)
@@ -141,8 +145,8 @@ def _register_features(src, tgt, n_points, cfg, seed) -> FeatureRegistration:
     ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
     s_sample, s_ransac = ss.spawn(2)
     rng = np.random.default_rng(s_sample)
-    src_idx = sample_indices(src.scores(), n_points, cfg.sampling, rng)
-    tgt_idx = sample_indices(tgt.scores(), n_points, cfg.sampling, rng)
+    src_idx = sample_indices(src.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
+    tgt_idx = sample_indices(tgt.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
     sp, tp = src.points[src_idx], tgt.points[tgt_idx]
     corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=cfg.mutual, device=cfg.device)
     if cfg.mutual and len(corr) < 3 * cfg.ransac.ransac_n:

@@ -9,7 +9,14 @@ Modes
 * ``topk``: the N highest scores (ties broken by index).
 * ``random``: N points uniformly without replacement (scores ignored).
 
-A fragment with at most N points is used whole, as in Predator.
+A fragment with fewer than N points (``fewer`` setting, ``registration.fewer_points``):
+
+* ``with_replacement``: N points drawn uniformly with replacement, as Predator's evaluation script
+  (``np.random.choice(n, N)``; PCR-CG evaluates with the same script);
+* ``whole``: every point once (fewer than N points).
+
+A fragment with exactly N points is used whole either way (Predator samples all N without
+replacement).
 """
 
 from __future__ import annotations
@@ -19,16 +26,26 @@ import numpy as np
 from pcrcg.errors import ConfigError
 
 SAMPLING_MODES = ("prob", "topk", "random")
+FEWER_POINTS = ("with_replacement", "whole")
 
 
-def sample_indices(scores: np.ndarray, n: int, mode: str, rng: np.random.Generator) -> np.ndarray:
-    """Indices (min(n, N),) int64, sorted ascending, of the points to keep; scores (N,) >= 0."""
+def sample_indices(scores: np.ndarray, n: int, mode: str, rng: np.random.Generator,
+                   fewer: str = "whole") -> np.ndarray:
+    """Indices int64, sorted ascending, of the points to keep; scores (N,) >= 0.
+
+    ``n`` indices, except for a fragment with fewer points under ``fewer="whole"`` (then all N);
+    with ``fewer="with_replacement"`` such a fragment gives ``n`` indices with repeats.
+    """
     if mode not in SAMPLING_MODES:
         raise ConfigError("registration.sampling", mode, " | ".join(SAMPLING_MODES))
+    if fewer not in FEWER_POINTS:
+        raise ConfigError("registration.fewer_points", fewer, " | ".join(FEWER_POINTS))
     if n < 1:
         raise ConfigError("n_points", n, ">= 1")
     scores = np.asarray(scores, dtype=np.float64).reshape(-1)
     N = len(scores)
+    if N < n and fewer == "with_replacement" and N > 0:
+        return np.sort(rng.integers(0, N, size=n)).astype(np.int64)
     if N <= n:
         return np.arange(N, dtype=np.int64)
     if mode == "random":

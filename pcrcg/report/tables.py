@@ -234,7 +234,7 @@ def _values(df: pd.DataFrame, col: str) -> list[str]:
 
 # the facts worth a line under each table (pcrcg.evaluation's protocol dict); all are in the CSV/MLflow
 _PROTOCOL_KEYS = ("pairs", "pairs_counted_in_rr", "n_pairs", "n_pairs_rr", "ransac.max_iterations", "ransac.distance",
-                  "ransac_budget", "sampling", "predator_variant", "seed")
+                  "ransac_budget", "sampling", "fewer_points", "predator_variant", "seed")
 
 
 def protocol_summary(runs: pd.DataFrame) -> list[str]:
