@@ -37,7 +37,7 @@ def test_defaults_compose_and_validate(conf):
     assert cfg.method == "learned" and cfg.views == 2 and cfg.window_size == 11
     assert cfg.profile.name == "cpu" and cfg.experiment_name == "default"
     assert list(cfg.eval.n_points) == [5000, 2500, 1000, 500, 250]
-    assert cfg.eval.ransac_iterations == 50000 and cfg.eval.ransac_distance == 0.05
+    assert cfg.eval.ransac_iterations == 50000 and cfg.eval.ransac_distance == pytest.approx(0.12)  # 2x the cpu profile's 6 cm voxel
     assert list(cfg.eval.benchmarks) == ["3DMatch", "3DLoMatch"]
     assert cfg.logger.name == "mlflow" and cfg.logger.tracking_uri is None
 

@@ -230,7 +230,7 @@ def test_registration_settings_follow_the_profile_and_run_eval_overrides():
     rcfg, bcfg = configs_from(_compose([], profile="paper"))
     assert rcfg.ransac.max_iterations == 50000 and rcfg.n_points == (5000, 2500, 1000, 500, 250)
     assert rcfg.ransac.distance == 0.05 and rcfg.ransac.edge_length == 0.9 and rcfg.ransac.ransac_n == 3
-    assert bcfg.ransac.max_iterations == 50000 and bcfg.fpfh.voxel == 0.05
+    assert bcfg.ransac.max_iterations == 50000 and bcfg.fpfh.voxel == 0.025 and bcfg.fpfh.distance == 2.0  # the model's voxel
     # the run config's eval node wins (conf/run.yaml)
     run_like = OmegaConf.create({"eval": {"n_points": [500], "ransac_iterations": 123, "ransac_distance": 0.04}})
     rcfg, _ = configs_from(run_like)

@@ -177,3 +177,23 @@ def test_fragments_with_fewer_points_are_resampled_as_predator_does():
     assert len(reg.src_idx) == 200
     with pytest.raises(ConfigError, match="fewer_points"):
         RegistrationConfig(fewer_points="pad")
+
+
+# --------------------------------------------------------------------------- item 9: distances tied to the voxel
+
+
+@pytest.mark.parametrize("profile, voxel", [("tiny", 0.06), ("cpu", 0.06), ("paper", 0.025)])
+def test_registration_distances_are_twice_the_models_voxel_and_the_metrics_stay(profile, voxel):
+    from pcrcg.evaluation.run import configs_from, thresholds_from
+
+    cfg = load_run_config([f"profile={profile}"])
+    rcfg, bcfg = configs_from(cfg)
+    assert rcfg.ransac.distance == pytest.approx(2 * voxel) == pytest.approx(cfg.eval.ransac_distance)
+    # FPFH + RANSAC on equal terms: the model's voxel, the same 2x threshold
+    assert bcfg.fpfh.voxel == pytest.approx(voxel) and bcfg.fpfh.distance * bcfg.fpfh.voxel == pytest.approx(2 * voxel)
+    # the protocol's metric thresholds do not move
+    assert thresholds_from(cfg) == {"inlier_distance": 0.1, "fmr_threshold": 0.05, "rmse_threshold": 0.2}
+    # a model voxel set on the command line moves them too; Open3D's FPFH recipe is a setting
+    rcfg, bcfg = configs_from(load_run_config([f"profile={profile}", "model.voxel_size=0.04",
+                                               "registration.fpfh.voxel=0.05", "registration.fpfh.distance=1.5"]))
+    assert rcfg.ransac.distance == pytest.approx(0.08) and bcfg.fpfh.voxel == 0.05 and bcfg.fpfh.distance == 1.5
