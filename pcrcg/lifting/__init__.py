@@ -2,7 +2,7 @@
 
 Public API
 ----------
-* :class:`LiftingConfig` ``(projection="none"|"implicit"|"explicit", features="none"|"rgb"|"sift"|"deep",
+* :class:`LiftingConfig` ``(projection="none"|"implicit"|"explicit", features="none"|"rgb"|"sift"|"deep"|"disk",
   views=1..3, window_size=odd >= 1, depth_tolerance=0.1 (m), feature_dim=None, image_size=None)``;
   bad values raise :class:`pcrcg.errors.ConfigError` naming the setting (``projection.window_size``,
   ``projection.views``, ``projection.name``, ``features.dim``, ...). ``LiftingConfig.from_cfg(cfg)``

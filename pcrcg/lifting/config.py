@@ -8,8 +8,8 @@ from typing import Any, Mapping
 from pcrcg.errors import ConfigError
 
 PROJECTIONS = ("none", "implicit", "explicit")
-FEATURES = ("none", "rgb", "sift", "deep")
-_DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32}
+FEATURES = ("none", "rgb", "sift", "deep", "disk")
+_DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32, "disk": 32}
 
 
 @dataclass
@@ -19,8 +19,8 @@ class LiftingConfig:
     * ``projection``: ``none`` (no color: ``out_dim`` 0) | ``implicit`` (every pixel may be lifted) |
       ``explicit`` (only pixels within a ``window_size`` x ``window_size`` window centred on a 2D
       match, the feature scaled by the match confidence).
-    * ``features``: ``none | rgb | sift | deep``; ``feature_dim`` their width (``None``: 3 for rgb,
-      32 for sift/deep, 0 for none; rgb must be 3).
+    * ``features``: ``none | rgb | sift | deep | disk``; ``feature_dim`` their width (``None``: 3 for rgb,
+      32 for sift/deep/disk, 0 for none; rgb must be 3, sift and disk at most 128).
     * ``views``: 1..3, the first ``views`` of (first, last, middle) frame of each fragment.
     * ``window_size``: odd >= 1, pixels of the projection grid (explicit only).
     * ``depth_tolerance``: metres; a point takes a pixel only if ``|z_point - depth| < tolerance``.
@@ -59,10 +59,10 @@ class LiftingConfig:
             raise ConfigError("features.dim", self.feature_dim, "an integer >= 0")
         if self.features == "rgb" and self.feature_dim != 3:
             raise ConfigError("features.dim", self.feature_dim, "3 for features=rgb")
-        if self.features in ("sift", "deep") and self.feature_dim < 1:
+        if self.features in ("sift", "deep", "disk") and self.feature_dim < 1:
             raise ConfigError("features.dim", self.feature_dim, f"an integer >= 1 for features={self.features}")
-        if self.features == "sift" and self.feature_dim > 128:
-            raise ConfigError("features.dim", self.feature_dim, "1..128 for features=sift")
+        if self.features in ("sift", "disk") and self.feature_dim > 128:
+            raise ConfigError("features.dim", self.feature_dim, f"1..128 for features={self.features}")
         if self.image_size is not None:
             try:
                 size = tuple(int(s) for s in self.image_size)

@@ -4,7 +4,7 @@
 prints one row per setting and whether coverage grows as the paper says (views 1 < 2 <= 3,
 windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrcg.lifting.toyscene`).
 Other keys: ``views=[1,2,3] windows=[3,7,11,17] base_views=2 base_window=11
-depth_tolerance=0.1 image_size=null method=sift pairs=paper cache_dir=cache/matches``.
+depth_tolerance=0.1 image_size=null method=sift|orb|lightglue pairs=paper|all|covisible cache_dir=cache/matches``.
 Coverage depends only on geometry and matches, so no feature map is computed.
 """
 
@@ -47,7 +47,8 @@ def coverage_sweep(
     * the view sweep, for implicit and explicit (``base_window``) projection;
     * the window sweep, explicit projection with ``base_views`` views.
 
-    The 2D matches of each pair are computed once (all views, ``matcher.pairs``) and reused.
+    The 2D matches of each pair are computed once (all views, ``matcher.pairs``) and reused; with
+    ``pairs=covisible`` (which ranks the view pairs of the views in use) once per number of views.
     """
     from tqdm import tqdm
 
@@ -64,9 +65,15 @@ def coverage_sweep(
     n = 0
     for sample in tqdm(samples, desc="coverage", disable=not progress):
         nv = max(max(views), base_views)
-        matches = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher, cache)
+        T = getattr(sample, "transform", None)
+        if matcher.pairs == "covisible":
+            by_views = {v: match_views(sample.src_views[:v], sample.tgt_views[:v], matcher, cache, T)
+                        for v in sorted({s[2] for s in settings})}
+        else:
+            every = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher, cache, T)
+            by_views = {s[2]: every for s in settings}
         for s in settings:
-            sums[s] += pair_coverage(lifters[s], sample, matches)
+            sums[s] += pair_coverage(lifters[s], sample, by_views[s[2]])
         n += 1
     if n == 0:
         raise ValueError("coverage_sweep: no pairs")
@@ -117,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> list[CoverageRow]:
     root = OmegaConf.select(args, "data.root")
     samples = load_samples(root, str(args.get("split", "val")), int(args.get("n_pairs", 4)))
     mnode = {k: args[k] for k in ("method", "ratio", "mutual", "ransac_threshold", "max_keypoints",
-                                  "min_matches", "pairs") if k in args}
+                                  "min_matches", "pairs", "covisible_k") if k in args}
     cache_dir = args.get("cache_dir", "cache/matches" if root else None)
     rows = coverage_sweep(
         samples,

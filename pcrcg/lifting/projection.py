@@ -268,12 +268,14 @@ class ColorLifter(nn.Module):
         return acc / count.clamp(min=1.0)[:, None], covered
 
     def match(self, sample: Any) -> dict:
-        """2D matches between the selected views of a pair (``cfg.views`` of each fragment)."""
+        """2D matches between the selected views of a pair (``cfg.views`` of each fragment); the
+        pair's ``transform`` (src -> tgt) serves ``matcher2d.pairs=covisible``."""
         from pcrcg.vision.matching import MatcherConfig, match_views
 
         cfg = self.matcher or MatcherConfig()
         n = self.cfg.views
-        return match_views(sample.src_views[:n], sample.tgt_views[:n], cfg, self.match_cache)
+        return match_views(sample.src_views[:n], sample.tgt_views[:n], cfg, self.match_cache,
+                           getattr(sample, "transform", None))
 
     def lift_pair(self, sample: Any, matches: Mapping | None = None, device: torch.device | str | None = None) -> "LiftedPair":
         return lift_pair(self, sample, matches, device)
@@ -362,7 +364,8 @@ def _module_device(m: nn.Module) -> torch.device:
 def build_lifter(cfg: Any, matcher_cache_dir: str | None = None) -> ColorLifter:
     """A :class:`ColorLifter` from a root config with ``projection``, ``features``, ``encoder2d``
     and ``matcher2d`` nodes (Hydra). The match cache lives in ``matcher2d.cache_dir`` (or
-    ``matcher_cache_dir``); none when both are null."""
+    ``matcher_cache_dir``); none when both are null. A ``runtime.device`` in ``cfg`` says where a
+    learned matcher runs (else ``auto``: CUDA when torch has it)."""
     from pcrcg.vision.features import build_feature_extractor
     from pcrcg.vision.matching import MatchCache, MatcherConfig
 
@@ -376,6 +379,10 @@ def build_lifter(cfg: Any, matcher_cache_dir: str | None = None) -> ColorLifter:
         extractor = build_feature_extractor(feat, get("encoder2d"))
     mnode = get("matcher2d")
     matcher = MatcherConfig.from_cfg(mnode) if mnode is not None else None
+    runtime = get("runtime")
+    device = runtime.get("device") if isinstance(runtime, Mapping) else None
+    if matcher is not None and device in ("cpu", "cuda", "auto"):
+        matcher.device = device
     cache_dir = matcher_cache_dir or (mnode or {}).get("cache_dir")
     cache = MatchCache(cache_dir) if cache_dir else None
     return ColorLifter(lcfg, extractor, matcher, cache)

@@ -34,7 +34,8 @@ def coverage_masks(sample: Any, fragment: str = "tgt", projection: str = "implic
     weights = None
     if projection == "explicit":
         nv = max(views)
-        m = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher or MatcherConfig(), cache)
+        m = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher or MatcherConfig(), cache,
+                        getattr(sample, "transform", None))
         skp, tkp = keypoints_per_view(m, min(nv, len(sample.src_views)), min(nv, len(sample.tgt_views)))
         weights = skp if fragment == "src" else tkp
     out = {}

