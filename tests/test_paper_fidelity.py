@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from pcrcg.config import load_run_config
@@ -197,3 +198,56 @@ def test_registration_distances_are_twice_the_models_voxel_and_the_metrics_stay(
     rcfg, bcfg = configs_from(load_run_config([f"profile={profile}", "model.voxel_size=0.04",
                                                "registration.fpfh.voxel=0.05", "registration.fpfh.distance=1.5"]))
     assert rcfg.ransac.distance == pytest.approx(0.08) and bcfg.fpfh.voxel == 0.05 and bcfg.fpfh.distance == 1.5
+
+
+# --------------------------------------------------------------------------- item 5: unseen points, several views
+
+
+def _two_views():
+    H, W = 12, 16
+    K = np.array([[10.0, 0, 7.5], [0, 10.0, 5.5], [0, 0, 1]])
+
+    def at(u, v, z=2.0):  # the point seen at pixel (u, v) of a camera at the origin
+        return np.array([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z])
+
+    # both views see points 0 and 1 (same camera); point 2 lies behind both cameras: seen by none
+    pts = torch.tensor(np.stack([at(3, 3), at(12, 8), [0.0, 0.0, -1.0]]), dtype=torch.float32)
+    maps = [torch.full((4, H, W), 2.0), torch.full((4, H, W), 6.0)]
+    # explicit: view 0 has a window on point 0 only, view 1 windows on both points
+    w0, w1 = torch.zeros(H, W), torch.zeros(H, W)
+    w0[3, 3] = 1.0
+    w1[3, 3] = w1[8, 12] = 1.0
+    return pts, maps, [w0, w1]
+
+
+def test_unseen_points_and_several_views_follow_the_official_code_by_default():
+    from pcrcg.lifting import ColorLifter, LiftingConfig
+
+    pts, maps, weights = _two_views()
+    lcfg = LiftingConfig.from_cfg(_run_cfg("features=sift", "features.dim=4", "projection=explicit",
+                                           "projection.image_size=null"))
+    assert (lcfg.unseen_value, lcfg.combine) == (1.0, "overwrite")
+    feats, cov = ColorLifter(lcfg)(pts, _views(), weights, maps)
+    # point 0: both views' windows; the first view writes last and wins (2, not the mean 4)
+    assert torch.allclose(feats[0], torch.full((4,), 2.0)) and bool(cov[0])
+    # point 1: the first view sees it outside its windows: its 0 wins over the second view's 6
+    assert torch.allclose(feats[1], torch.zeros(4)) and not bool(cov[1])
+    # point 2: seen by no view: the constant 1 (the official input is ones repeated to 129 there)
+    assert torch.allclose(feats[2], torch.ones(4)) and not bool(cov[2])
+    assert ColorLifter(lcfg).coverage(pts, _views(), weights).tolist() == cov.tolist()
+    # the paper's text: the mean of the views that lift, zeros for every uncovered point
+    mean = LiftingConfig("explicit", "sift", 2, 3, feature_dim=4, unseen_value=0.0, combine="mean")
+    feats, cov = ColorLifter(mean)(pts, _views(), weights, maps)
+    assert torch.allclose(feats[0], torch.full((4,), 4.0)) and torch.allclose(feats[1], torch.full((4,), 6.0))
+    assert torch.allclose(feats[2], torch.zeros(4)) and cov.tolist() == [True, True, False]
+    assert ColorLifter(mean).coverage(pts, _views(), weights).tolist() == cov.tolist()
+    with pytest.raises(ConfigError, match="projection.combine"):
+        LiftingConfig(combine="max")
+
+
+def _views():
+    from pcrcg.data.dataset import View
+
+    K = np.array([[10.0, 0, 7.5], [0, 10.0, 5.5], [0, 0, 1]])
+    return [View(np.zeros((12, 16, 3), np.uint8), np.full((12, 16), 2.0, np.float32), K.copy(), np.eye(4), 0, f"<v{k}>")
+            for k in range(2)]

@@ -8,6 +8,7 @@ from typing import Any, Mapping
 from pcrcg.errors import ConfigError
 
 PROJECTIONS = ("none", "implicit", "explicit")
+COMBINE = ("overwrite", "mean")
 FEATURES = ("none", "rgb", "sift", "deep", "disk")
 _DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32, "disk": 32}
 
@@ -26,6 +27,14 @@ class LiftingConfig:
     * ``depth_tolerance``: metres; a point takes a pixel only if ``|z_point - depth| < tolerance``.
     * ``image_size``: (H, W) of the projection grid (depth, feature maps, windows are resampled to
       it); ``None`` = each view's own resolution.
+    * ``unseen_value``: the feature of a point that no selected view sees (outside every image, or
+      its depth disagrees): 1.0 as the official code (its input is a constant 1 repeated to the full
+      width there), 0.0 the project's first reading. A point that a view sees outside every window
+      (explicit) gets 0 either way.
+    * ``combine``: several views: ``overwrite`` as the official code (each view writes the points it
+      sees, in reverse order of (first, last, middle), so the first-listed view that sees a point
+      gives its value, even a 0 outside its windows) | ``mean`` (the average over the views whose
+      weight is > 0, the paper's text).
     """
 
     projection: str = "explicit"
@@ -35,6 +44,10 @@ class LiftingConfig:
     depth_tolerance: float = 0.1
     feature_dim: int | None = None
     image_size: tuple[int, int] | None = None
+    # the dataclass (and a config without these keys, e.g. an older checkpoint's) keeps the project's
+    # first reading; conf/projection/*.yaml set the official code's (1.0, overwrite)
+    unseen_value: float = 0.0
+    combine: str = "mean"
 
     def __post_init__(self) -> None:
         if self.projection not in PROJECTIONS:
@@ -53,6 +66,12 @@ class LiftingConfig:
         if not tol > 0:
             raise ConfigError("projection.depth_tolerance", self.depth_tolerance, "metres > 0")
         self.depth_tolerance = tol
+        if self.combine not in COMBINE:
+            raise ConfigError("projection.combine", self.combine, " | ".join(COMBINE))
+        try:
+            self.unseen_value = float(self.unseen_value)
+        except (TypeError, ValueError):
+            raise ConfigError("projection.unseen_value", self.unseen_value, "a number (official: 1.0)") from None
         if self.feature_dim is None:
             self.feature_dim = _DEFAULT_DIM[self.features]
         if isinstance(self.feature_dim, bool) or not isinstance(self.feature_dim, int) or self.feature_dim < 0:
@@ -99,6 +118,8 @@ class LiftingConfig:
             depth_tolerance=proj.get("depth_tolerance", 0.1),
             feature_dim=None if dim is None else _int(dim, "features.dim"),
             image_size=None if size is None else tuple(size),
+            unseen_value=proj.get("unseen_value", 0.0),
+            combine=str(proj.get("combine", "mean")),
         )
 
 

@@ -11,7 +11,12 @@ For each selected view (first, last, middle frame of the fragment):
    when windows overlap), 0 outside every window;
 4. the point's feature from that view is ``weight * feature_map[:, pixel]`` (a differentiable gather:
    gradients flow into the feature map, hence into the 2D encoder);
-5. features of the views that cover the point (weight > 0) are averaged; uncovered points get zeros.
+5. several views (``combine``): ``overwrite`` (the official code) takes the value of the first-listed
+   view that sees the point (weight 0 outside its windows included); ``mean`` averages the views that
+   cover it (weight > 0);
+6. a point that no view sees gets ``unseen_value`` in every channel (1.0, the official code's constant),
+   a point seen outside every window 0; ``covered`` (the coverage metric) = the feature came with a
+   weight > 0.
 
 The projection geometry runs in float64 without gradients; only the gather carries them.
 """
@@ -192,13 +197,19 @@ class ColorLifter(nn.Module):
 
     def view_weights(self, points: torch.Tensor, view: Any, spec: Any = None) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
         """Pixel index (N,) long, weight (N,) float32 (0 = not covered) and grid size of one view."""
+        flat, _, w, size = self.view_visibility(points, view, spec)
+        return flat, w, size
+
+    def view_visibility(self, points: torch.Tensor, view: Any, spec: Any = None
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]]:
+        """Pixel index (N,) long, visible (N,) bool, weight (N,) float32 and grid size of one view."""
         size = grid_size(view, self.cfg.image_size)
         flat, visible = project_points(points, view, size, self.cfg.depth_tolerance)
         w = visible.to(torch.float32)
         if self.cfg.projection == "explicit":
             wmap = self._weight_map(view, spec, size, points.device)
             w = w * wmap.reshape(-1)[flat]
-        return flat, w, size
+        return flat, visible, w, size
 
     def _weight_map(self, view: Any, spec: Any, size: tuple[int, int], device: torch.device) -> torch.Tensor:
         if spec is None:
@@ -231,6 +242,11 @@ class ColorLifter(nn.Module):
             return torch.zeros(len(points), dtype=torch.bool, device=points.device)
         views, weights = self._select(views, weights)
         cov = torch.zeros(len(points), dtype=torch.bool, device=points.device)
+        if self.cfg.combine == "overwrite":  # the view that writes last (the first listed) decides
+            for view, spec in reversed(list(zip(views, weights))):
+                _, vis, w, _ = self.view_visibility(points, view, spec)
+                cov = torch.where(vis, w > 0, cov)
+            return cov
         for view, spec in zip(views, weights):
             _, w, _ = self.view_weights(points, view, spec)
             cov |= w > 0
@@ -257,15 +273,32 @@ class ColorLifter(nn.Module):
         maps = list(feature_maps[: len(views)]) if feature_maps is not None else self.extractor(views, dev)
         if len(maps) != len(views):
             raise ValueError(f"{len(maps)} feature maps for {len(views)} views")
-        acc = torch.zeros(n, self.out_dim, dtype=torch.float32, device=dev)
-        count = torch.zeros(n, dtype=torch.float32, device=dev)
-        for view, spec, fmap in zip(views, weights, maps):
-            flat, w, size = self.view_weights(points, view, spec)
-            f = resample_map(fmap.to(dev).float(), size).reshape(self.out_dim, -1)
-            acc = acc + w[:, None] * f.index_select(1, flat).T
-            count = count + (w > 0).float()
-        covered = count > 0
-        return acc / count.clamp(min=1.0)[:, None], covered
+        seen = torch.zeros(n, dtype=torch.bool, device=dev)
+        if self.cfg.combine == "overwrite":
+            # the official code: x[view_inds3d] = feature for each view in reverse order, so the
+            # first-listed view that sees a point writes last and wins
+            out = torch.zeros(n, self.out_dim, dtype=torch.float32, device=dev)
+            covered = torch.zeros(n, dtype=torch.bool, device=dev)
+            for view, spec, fmap in reversed(list(zip(views, weights, maps))):
+                flat, vis, w, size = self.view_visibility(points, view, spec)
+                f = resample_map(fmap.to(dev).float(), size).reshape(self.out_dim, -1)
+                out = torch.where(vis[:, None], w[:, None] * f.index_select(1, flat).T, out)
+                covered = torch.where(vis, w > 0, covered)
+                seen |= vis
+        else:
+            acc = torch.zeros(n, self.out_dim, dtype=torch.float32, device=dev)
+            count = torch.zeros(n, dtype=torch.float32, device=dev)
+            for view, spec, fmap in zip(views, weights, maps):
+                flat, vis, w, size = self.view_visibility(points, view, spec)
+                f = resample_map(fmap.to(dev).float(), size).reshape(self.out_dim, -1)
+                acc = acc + w[:, None] * f.index_select(1, flat).T
+                count = count + (w > 0).float()
+                seen |= vis
+            covered = count > 0
+            out = acc / count.clamp(min=1.0)[:, None]
+        if self.cfg.unseen_value != 0.0:
+            out = torch.where(seen[:, None], out, torch.full_like(out, self.cfg.unseen_value))
+        return out, covered
 
     def match(self, sample: Any) -> dict:
         """2D matches between the selected views of a pair (``cfg.views`` of each fragment); the
