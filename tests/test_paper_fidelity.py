@@ -251,3 +251,37 @@ def _views():
     K = np.array([[10.0, 0, 7.5], [0, 10.0, 5.5], [0, 0, 1]])
     return [View(np.zeros((12, 16, 3), np.uint8), np.full((12, 16), 2.0, np.float32), K.copy(), np.eye(4), 0, f"<v{k}>")
             for k in range(2)]
+
+
+# --------------------------------------------------------------------------- item 1: 2D branch detached by default
+
+
+def test_the_2d_branch_is_detached_by_default_and_end_to_end_is_a_setting():
+    from test_training import MODEL, _color_batch, _lifting
+
+    from pcrcg.lifting.toyscene import make_pair
+    from pcrcg.models.module import PCRCGModule, training_2d
+
+    cfg = _run_cfg("features=deep", "projection=implicit")
+    assert cfg.encoder2d.training == "detached"
+    assert training_2d({"encoder2d": {"name": "scratch"}}) == "end_to_end"  # checkpoints made before the setting
+    sample = make_pair(0, width=80, height=60, frames=3, voxel=0.05)
+    batch = _color_batch(sample)
+    grads = {}
+    for mode in ("detached", "end_to_end"):
+        lifting = {**_lifting("implicit", "deep", dim=8),
+                   "encoder2d": {"name": "scratch", "arch": "resnet18", "out_dim": 8, "weights": None,
+                                 "image_size": [48, 64], "training": mode}}
+        torch.manual_seed(0)
+        module = PCRCGModule({**MODEL, "voxel_size": 0.1}, lifting=lifting)
+        loss = module.training_step(batch, 0)
+        loss.backward()
+        grads[mode] = [p.grad for p in module.lifter.parameters() if p.grad is not None]
+        groups = module.configure_optimizers()["optimizer"].param_groups
+        assert len(groups) == (1 if mode == "detached" else 2)
+    assert grads["detached"] == [] and grads["end_to_end"]  # the 3D loss reaches the 2D net only end to end
+    with pytest.raises(ConfigError, match="encoder2d.training"):
+        _run_cfg("features=deep", "projection=implicit", "encoder2d.training=frozen")
+    # the 2D backbone table sweeps both ways
+    bb = OmegaConf.load(REPO / "conf" / "experiment" / "backbone_2d.yaml").hydra.sweeper.params
+    assert str(bb["encoder2d.training"]).split(",") == ["detached", "end_to_end"]

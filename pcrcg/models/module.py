@@ -6,12 +6,20 @@ extractor and its encoder as submodules, so the 3D loss trains them end to end) 
 features onto the level-0 points of both fragments in their own frames, and the input is
 ``[1, lifted features]`` (``in_dim = 1 + lifter.out_dim``): the paper's only change to the network.
 
+``encoder2d.training`` says whether the 3D loss trains the 2D branch: ``detached`` (the official
+code: the lifted features are detached, the 2D network is never optimised; it runs without
+gradients, and its BatchNorm statistics follow the module's train/eval mode as a network left in
+train mode does) or ``end_to_end`` (the paper's text). A lifting config without the key (an older
+checkpoint) trains end to end, as those did.
+
 Optimisation as the paper / Predator: SGD (lr 0.005, momentum 0.98, weight decay 1e-6), the
 learning rate times 0.95 after every epoch, batch size 1. The matchability loss joins once the
 validation feature-match recall exceeds ``loss.matchability_after_recall`` (Predator's schedule).
 """
 
 from __future__ import annotations
+
+import contextlib
 
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -121,6 +129,19 @@ def build_lifter_from(lifting: Mapping[str, Any] | None):
     return lifter if lifter.out_dim > 0 else None
 
 
+TRAINING_2D = ("detached", "end_to_end")
+
+
+def training_2d(lifting: Mapping[str, Any] | None) -> str:
+    """``encoder2d.training`` of a lifting config: ``detached`` | ``end_to_end`` (the default when the
+    key is absent: what checkpoints made before the setting existed did)."""
+    enc = (lifting or {}).get("encoder2d") or {}
+    value = str(enc.get("training", "end_to_end") if isinstance(enc, Mapping) else "end_to_end")
+    if value not in TRAINING_2D:
+        raise ConfigError("encoder2d.training", value, " | ".join(TRAINING_2D))
+    return value
+
+
 class PCRCGModule(L.LightningModule):
     """``PCRCGModule(model, optim=None, lifting=None)``.
 
@@ -134,6 +155,7 @@ class PCRCGModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters(ignore=["lifter"])
         self.lifter = lifter if lifter is not None else build_lifter_from(lifting)
+        self.training_2d = training_2d(lifting)
         lifted = int(self.lifter.out_dim) if self.lifter is not None else 0
         self.net = build_predator(dict(model), in_dim=1 + lifted)
         self.loss_cfg = LossConfig.from_mapping(model.get("loss"))
@@ -164,7 +186,8 @@ class PCRCGModule(L.LightningModule):
                                  src_views=batch.src_views, tgt_views=batch.tgt_views)
         from pcrcg.lifting import lift_pair
 
-        lifted = lift_pair(self.lifter, sample, getattr(batch, "matches", None), device=ones.device)
+        with torch.no_grad() if self.training_2d == "detached" else contextlib.nullcontext():
+            lifted = lift_pair(self.lifter, sample, getattr(batch, "matches", None), device=ones.device)
         feats = torch.cat([lifted.src_feats, lifted.tgt_feats], 0).to(ones.dtype)
         return torch.cat([ones, feats], 1), float(lifted.color_coverage)
 
@@ -264,7 +287,7 @@ class PCRCGModule(L.LightningModule):
         c = self.optim_cfg
         net_params = [p for p in self.net.parameters() if p.requires_grad]
         groups = [{"params": net_params, "lr": c.lr}]
-        if self.lifter is not None:
+        if self.lifter is not None and self.training_2d == "end_to_end":  # detached: the 2D net is not optimised
             lp = [p for p in self.lifter.parameters() if p.requires_grad]
             if lp:
                 groups.append({"params": lp, "lr": c.lr * c.encoder_lr_scale})
