@@ -13,10 +13,19 @@
 
 The last line of standard output is one JSON object. Every input is checked before work starts;
 a bad file is an error that names it.
+
+Results that look like numbers but mean nothing come with a warning on standard error and in the
+JSON (``warnings``, and a flag): ``mode=score`` where no estimate matched a pair of the benchmark
+(an empty ``est.log``, swapped ``i j``, the wrong benchmark: ``no_estimate_matched``); ``mode=pair``
+with fewer points than a registration needs (``few_points``; fewer than RANSAC's 3 is an error), a
+cloud whose extent is far from a scan in metres (``scale_suspect``: km or mm units), and coordinates
+so far from the origin that float32 loses precision (UTM): both clouds are then shifted to a local
+origin (``origin_shift``) and the returned transform is shifted back to the original coordinates.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -45,13 +54,93 @@ def _existing(path: str, what: str, folder: bool = False) -> Path:
     return p
 
 
+# mode=pair: RANSAC draws 3 correspondences; below FEW_POINTS points a transform means little; a
+# scan in metres spans SCALE_RANGE; beyond FLOAT32_SAFE m from the origin float32 spacing exceeds 1 mm
+MIN_POINTS = 3
+FEW_POINTS = 100
+SCALE_RANGE = (0.05, 1000.0)
+FLOAT32_SAFE = 1.0e4
+
+
+def _warn(warnings: list[str], text: str) -> None:
+    warnings.append(text)
+    print(f"pcrcg.evaluate: warning: {text}", file=sys.stderr, flush=True)
+
+
 def run_score(cfg: DictConfig) -> dict[str, Any]:
-    from pcrcg.evaluation.metrics import score_directories
+    from pcrcg.evaluation.metrics import load_benchmark, load_estimates, score_benchmark
 
     bdir = _existing(_need(cfg, "benchmark_dir", "a folder of <scene>/gt.log|gt.info"), "benchmark folder", True)
     edir = _existing(_need(cfg, "estimate_dir", "a folder of <scene>/est.log"), "estimate folder", True)
-    score = score_directories(bdir, edir, bool(cfg.predator_variant), float(cfg.eval.rmse_threshold))
-    return {**score.to_dict(), "benchmark_dir": str(bdir), "estimate_dir": str(edir)}
+    gt = load_benchmark(bdir)
+    est, missing = load_estimates(edir, gt.keys())
+    score = score_benchmark(gt, est, bool(cfg.predator_variant), missing, float(cfg.eval.rmse_threshold))
+    pairs = {s: {(p.i, p.j) for p in g.pairs} for s, g in gt.items()}
+    matched = sum(len(pairs[s] & set(e)) for s, e in est.items())
+    unmatched = sum(len(set(e) - pairs[s]) for s, e in est.items())
+    swapped = sum(len({(j, i) for i, j in e} & pairs[s] - set(e)) for s, e in est.items())
+    n_pairs = sum(len(p) for p in pairs.values())
+    warnings: list[str] = []
+    if matched == 0:
+        why = ("every est.log is empty" if unmatched == 0 else
+               f"{swapped} of the {unmatched} estimates name a pair as 'j i' (gt.log lists 'i j': j maps into i)"
+               if swapped else f"none of the {unmatched} estimates names a pair of this benchmark (the wrong one?)")
+        _warn(warnings, f"no estimate in {edir} matched any of the {n_pairs} pairs of {bdir} ({why}): "
+                        "every pair counts as a failure, RR 0 means nothing here")
+    elif unmatched:
+        _warn(warnings, f"{unmatched} estimates in {edir} match no pair of {bdir}"
+                        + (f" ({swapped} of them with i and j swapped)" if swapped else "") + "; they are ignored")
+    return {**score.to_dict(), "benchmark_dir": str(bdir), "estimate_dir": str(edir), "matched_pairs": matched,
+            "unmatched_estimates": unmatched, "no_estimate_matched": matched == 0, "warnings": warnings}
+
+
+def _shift(T: np.ndarray, offset: np.ndarray | None, back: bool) -> np.ndarray:
+    """A transform between the original clouds and the clouds moved by ``-offset``: into the local
+    frame (``back=False``), or back to the original coordinates (``back=True``)."""
+    if offset is None:
+        return T
+    S = np.eye(4)
+    S[:3, 3] = -offset
+    Si = np.eye(4)
+    Si[:3, 3] = offset
+    return Si @ T @ S if back else S @ T @ Si
+
+
+def _pair_clouds(cfg: DictConfig, warnings: list[str], flags: dict[str, Any]):
+    """Both clouds (float64 read, float32 out, moved to a local origin when far from it), with checks
+    and warnings: (source path, target path, (src, src colors), (tgt, tgt colors), offset or None)."""
+    from pcrcg.data.layout import read_cloud
+
+    sp = _existing(_need(cfg, "source", "a point cloud file (.ply, .pcd, .npz, .pth)"), "source cloud")
+    tp = _existing(_need(cfg, "target", "a point cloud file (.ply, .pcd, .npz, .pth)"), "target cloud")
+    (src, scol), (tgt, tcol) = read_cloud(sp, dtype=np.float64), read_cloud(tp, dtype=np.float64)
+    for path, pts in ((sp, src), (tp, tgt)):
+        if len(pts) < MIN_POINTS:
+            raise DataError(path, f"holds {len(pts)} point(s); a registration needs at least {MIN_POINTS} "
+                                  "(RANSAC draws 3 correspondences)")
+    few = [f"{p.name}: {len(x)}" for p, x in ((sp, src), (tp, tgt)) if len(x) < FEW_POINTS]
+    flags["few_points"] = bool(few)
+    if few:
+        _warn(warnings, f"too few points for a meaningful registration ({', '.join(few)}; RANSAC draws 3 at a "
+                        f"time, under {FEW_POINTS} points any transform fits): the result is not reliable")
+    offset = None
+    far = max(float(np.abs(src).max()), float(np.abs(tgt).max()))
+    if far > FLOAT32_SAFE:
+        offset = np.round(np.concatenate([src, tgt]).mean(0), 0)
+        spacing = float(np.spacing(np.float32(far)))
+        _warn(warnings, f"coordinates reach {far:.0f} m, where float32 (the model's and RANSAC's precision) "
+                        f"spaces values {spacing:.3g} m apart: both clouds are shifted by {(-offset).tolist()} to a "
+                        "local origin, and the transform is given back in the original coordinates")
+        src, tgt = src - offset, tgt - offset
+    flags["origin_shift"] = None if offset is None else offset.tolist()
+    extents = [float(np.linalg.norm(x.max(0) - x.min(0))) for x in (src, tgt)]
+    odd = [f"{p.name}: {e:.3g} m" for p, e in zip((sp, tp), extents) if not SCALE_RANGE[0] <= e <= SCALE_RANGE[1]]
+    flags["scale_suspect"] = bool(odd)
+    if odd:
+        _warn(warnings, f"cloud extent far from a scan in metres ({', '.join(odd)}; expected "
+                        f"{SCALE_RANGE[0]}-{SCALE_RANGE[1]:.0f} m): voxel sizes and distances are in metres, so the "
+                        "result is likely meaningless (units km or mm? scale the clouds to metres)")
+    return sp, tp, (src.astype(np.float32), scol), (tgt.astype(np.float32), tcol), offset
 
 
 def _load_views(prefixes: list[str], intrinsics: str | None) -> list:
@@ -79,14 +168,6 @@ def _load_views(prefixes: list[str], intrinsics: str | None) -> list:
     return views
 
 
-def _read_pair_clouds(cfg: DictConfig):
-    from pcrcg.data.layout import read_cloud
-
-    sp = _existing(_need(cfg, "source", "a point cloud file (.ply, .pcd, .npz, .pth)"), "source cloud")
-    tp = _existing(_need(cfg, "target", "a point cloud file (.ply, .pcd, .npz, .pth)"), "target cloud")
-    return sp, tp, read_cloud(sp), read_cloud(tp)
-
-
 def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     """Register two clouds with a trained checkpoint: network outputs, sampling, matching, RANSAC."""
     from pcrcg.evaluation.model import as_fragment
@@ -98,7 +179,9 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     if n_points < 3:
         raise ConfigError("pair_points", n_points, "an integer >= 3")
     ckpt = _existing(_need(cfg, "checkpoint", "a trained model's checkpoint (method=learned)"), "checkpoint")
-    _, _, (src, _), (tgt, _) = _read_pair_clouds(cfg)
+    warnings: list[str] = []
+    flags: dict[str, Any] = {}
+    _, _, (src, _), (tgt, _), offset = _pair_clouds(cfg, warnings, flags)
     rcfg, _ = configs_from(cfg)
     module = load_module(ckpt, device=None if str(rcfg.device) == "auto" else rcfg.device)
     src_views = tgt_views = []
@@ -110,6 +193,11 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
             raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
                               f"{need} frame prefixes .../frame-XXXXXX per fragment (this checkpoint lifts color "
                               f"from {need} view(s))")
+        if offset is not None:  # the views' poses are camera-to-fragment: move them with the clouds
+            S = np.eye(4)
+            S[:3, 3] = -offset
+            src_views = [v.transformed(S) for v in src_views]
+            tgt_views = [v.transformed(S) for v in tgt_views]
     t0 = time.perf_counter()
     out = infer_clouds(module, src, tgt, src_views, tgt_views)
     res = register_features(as_fragment(out.src), as_fragment(out.tgt), n_points, rcfg, seed=int(cfg.seed))
@@ -125,7 +213,9 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
         "fitness": _num(res.ransac.fitness),
         "color_coverage": _num(out.color_coverage),
         "seconds": round(time.perf_counter() - t0, 4),
-        "transform": np.asarray(res.transform, dtype=float).round(10).tolist(),
+        **flags,
+        "warnings": warnings,
+        "transform": _shift(np.asarray(res.transform, dtype=float), offset, back=True).round(10).tolist(),
     }
 
 
@@ -139,8 +229,10 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
         return run_pair_learned(cfg)
     if method not in METHODS:
         raise ConfigError("method", method, " | ".join((*METHODS, "learned")))
-    src = tgt = src_col = tgt_col = None
+    src = tgt = src_col = tgt_col = offset = None
     src_views = tgt_views = []
+    warnings: list[str] = []
+    flags: dict[str, Any] = {}
     if method == "sift_dlt":
         src_views = _load_views(list(cfg.source_views or []), cfg.intrinsics)
         tgt_views = _load_views(list(cfg.target_views or []), cfg.intrinsics)
@@ -148,7 +240,7 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
             raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
                               "frame prefixes .../frame-XXXXXX of both fragments (sift_dlt uses images)")
     else:
-        sp, tp, (src, src_col), (tgt, tgt_col) = _read_pair_clouds(cfg)
+        sp, tp, (src, src_col), (tgt, tgt_col), offset = _pair_clouds(cfg, warnings, flags)
         if method == "color_icp":
             for path, col in ((sp, src_col), (tp, tgt_col)):
                 if col is None:
@@ -156,7 +248,7 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
     init = None
     if cfg.init is not None:
         ip = _existing(str(cfg.init), "initial transform file")
-        init = check_rigid(read_matrix(ip, (4, 4)), ip)
+        init = _shift(check_rigid(read_matrix(ip, (4, 4)), ip), offset, back=False)
     _, bcfg = configs_from(cfg)
     t0 = time.perf_counter()
     res = register_pair(method, src, tgt, src_colors=src_col, tgt_colors=tgt_col, src_views=src_views,
@@ -168,7 +260,9 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
         "fitness": _num(res.fitness),
         "inlier_rmse": _num(res.inlier_rmse),
         "seconds": round(time.perf_counter() - t0, 4),
-        "transform": np.asarray(res.transform, dtype=float).round(10).tolist(),
+        **flags,
+        "warnings": warnings,
+        "transform": _shift(np.asarray(res.transform, dtype=float), offset, back=True).round(10).tolist(),
     }
 
 

@@ -301,3 +301,74 @@ def test_pipeline_evaluate_stage_learned_and_icp_from_learned(layout, tmp_path, 
     with pytest.raises(DataError, match="checkpoint"):
         evaluate(OmegaConf.create({**base, "method": "learned"}), data_root=layout, checkpoint=tmp_path / "none.ckpt",
                  out_dir=tmp_path / "x", progress=False)
+
+
+# --------------------------------------------------------------------------- silent nonsense (issue 16)
+
+
+def test_score_mode_warns_when_no_estimate_matches(layout, tmp_path, capsys):
+    bench = Layout(layout).benchmark_dir("3DMatch")
+    est = _gt_as_estimates(layout, tmp_path / "est")
+    ok = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DMatch'}"])
+    assert ok["no_estimate_matched"] is False and ok["warnings"] == [] and ok["matched_pairs"] > 0
+    # an empty est.log
+    empty = tmp_path / "empty" / "room"
+    empty.mkdir(parents=True)
+    (empty / "est.log").write_text("")
+    out = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={empty.parent}"])
+    assert out["no_estimate_matched"] is True and out["rr"] == 0.0
+    assert "every est.log is empty" in out["warnings"][0]
+    assert "warning: no estimate" in capsys.readouterr().err
+    # i and j swapped
+    g = load_benchmark(bench)["room"]
+    swapped = tmp_path / "swapped" / "room"
+    write_gt_log(swapped / "est.log", [PairRecord("room", p.j, p.i, p.transform, n_fragments=p.n_fragments)
+                                       for p in g.pairs])
+    out = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={swapped.parent}"])
+    assert out["no_estimate_matched"] is True and "'j i'" in out["warnings"][0]
+    # the other benchmark's estimates
+    lo = Layout(layout).benchmark_dir("3DLoMatch")
+    if load_benchmark(lo)["room"].pairs:
+        out = _run(["mode=score", f"benchmark_dir={bench}", f"estimate_dir={est / '3DLoMatch'}"])
+        assert out["no_estimate_matched"] is True and "the wrong one" in out["warnings"][0]
+
+
+def test_pair_mode_warns_on_few_points_odd_scale_and_far_coordinates(clouds, tmp_path):
+    d, pair = clouds
+    base = ["mode=pair", "method=icp"]
+    # three points: RANSAC's minimum, any transform fits them
+    write_ply(tmp_path / "three.ply", pair.src_points[:3])
+    out = _run([*base, f"source={tmp_path / 'three.ply'}", f"target={d / 'tgt.ply'}"])
+    assert out["few_points"] is True and "too few points" in out["warnings"][0]
+    write_ply(tmp_path / "two.ply", pair.src_points[:2])
+    with pytest.raises(DataError, match="two.ply.*at least 3"):
+        _run([*base, f"source={tmp_path / 'two.ply'}", f"target={d / 'tgt.ply'}"])
+    # kilometres instead of metres
+    write_ply(tmp_path / "src_km.ply", pair.src_points / 1000.0)
+    write_ply(tmp_path / "tgt_km.ply", pair.tgt_points / 1000.0)
+    out = _run([*base, f"source={tmp_path / 'src_km.ply'}", f"target={tmp_path / 'tgt_km.ply'}"])
+    assert out["scale_suspect"] is True and any("units km or mm" in w for w in out["warnings"])
+    # UTM-like coordinates: float32 would lose ~0.25 m; the clouds are shifted and the transform shifted back
+    off = np.array([500000.0, 4649776.0, 120.0])
+    np.savez(tmp_path / "src_utm.npz", points=pair.src_points.astype(np.float64) + off)
+    np.savez(tmp_path / "tgt_utm.npz", points=pair.tgt_points.astype(np.float64) + off)
+    T_local = np.loadtxt(d / "init.txt")
+    S, Si = np.eye(4), np.eye(4)
+    S[:3, 3], Si[:3, 3] = -off, off
+    write_matrix(tmp_path / "init_utm.txt", Si @ T_local @ S)
+    far = _run([*base, f"source={tmp_path / 'src_utm.npz'}", f"target={tmp_path / 'tgt_utm.npz'}",
+                f"init={tmp_path / 'init_utm.txt'}"])
+    near = _run([*base, f"source={d / 'src.ply'}", f"target={d / 'tgt.ply'}", f"init={d / 'init.txt'}"])
+    assert far["origin_shift"] is not None and any("float32" in w for w in far["warnings"])
+    assert near["origin_shift"] is None and near["warnings"] == [] and near["few_points"] is False
+    T_far = S @ np.array(far["transform"]) @ Si  # back in the local frame
+    assert rotation_error_deg(T_far[:3, :3], pair.transform[:3, :3]) < 1.0
+    assert np.linalg.norm(T_far[:3, 3] - pair.transform[:3, 3]) < 0.02
+
+
+def test_metrics_json_holds_no_bare_nan(tmp_path):
+    from pcrcg.cli import strict_json
+
+    text = strict_json({"3DMatch/rre": float("nan"), "x": [np.float32(1.5), float("inf")], "n": np.int64(3)})
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"3DMatch/rre": None, "x": [1.5, None], "n": 3}

@@ -29,7 +29,7 @@ import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -444,8 +444,9 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     os.replace(tmp, path)
 
 
-def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N, 3) float32 and colors (N, 3) float32 in [0, 1] or None.
+def read_cloud(path: str | os.PathLike, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) float32 (``dtype``: float64 keeps far-from-origin coordinates exact) and colors
+    (N, 3) float32 in [0, 1] or None.
 
     Reads ``.ply`` / ``.pcd`` (Open3D), ``.npz`` (keys ``points``/``pcd``/``xyz`` and optional
     ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
@@ -459,21 +460,26 @@ def read_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
         import open3d as o3d
 
         pcd = o3d.io.read_point_cloud(str(path))
-        pts = np.asarray(pcd.points, dtype=np.float32)
+        pts = np.asarray(pcd.points, dtype=dtype)
         if len(pts) == 0:
             raise DataError(path, "point cloud is empty or unreadable")
         cols = np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else None
         return _check_points(pts, path), cols
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            key = next((k for k in ("points", "pcd", "xyz") if k in z), None)
-            if key is None:
-                raise DataError(path, f"npz has no 'points' array (keys: {sorted(z.files)})")
-            pts = np.asarray(z[key], dtype=np.float32)
-            cols = np.asarray(z["colors"], dtype=np.float32) if "colors" in z else None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                key = next((k for k in ("points", "pcd", "xyz") if k in z), None)
+                if key is None:
+                    raise DataError(path, f"npz has no 'points' array (keys: {sorted(z.files)})")
+                pts = np.asarray(z[key], dtype=dtype)
+                cols = np.asarray(z["colors"], dtype=np.float32) if "colors" in z else None
+        except DataError:
+            raise
+        except (ValueError, OSError, EOFError) as exc:  # pickled objects (refused), not a zip, truncated
+            raise DataError(path, f"is not an npz of numeric arrays ({' '.join(str(exc).split())[:160]})") from None
         return _check_points(pts, path), cols
     if suffix == ".pth":
-        return _check_points(_load_pth_points(path), path), None
+        return _check_points(np.asarray(_load_pth_points(path), dtype=dtype), path), None
     raise DataError(path, f"unsupported point cloud format {suffix!r} (use .ply, .pcd, .npz or .pth)")
 
 

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import shutil
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import fields
@@ -33,13 +34,39 @@ GENERATOR_VERSION = 4
 SOURCES = ("synthmatch", "redkitchen", "threedmatch")
 
 
+# settings that must be > 0 (every other number of these dataclasses must be >= 0), and fractions
+_POSITIVE = {"tsdf_voxel", "trunc_voxels", "depth_max", "overlap_radius", "fragment_seconds", "max_depth"}
+_AT_MOST_ONE = {"min_overlap", "lo_match_max", "edge_drop", "dropout", "dark_drop", "grazing_cos", "grazing_soft"}
+
+
 def _dc(cls, cfg: Mapping[str, Any] | None, setting: str):
-    """Build dataclass ``cls`` from a mapping, naming the setting on unknown keys."""
+    """Build dataclass ``cls`` from a mapping, naming the setting on unknown keys, on a value of the
+    wrong type (``width=abc``) and on a number out of range (negative; 0 where it must be > 0)."""
     cfg = dict(cfg or {})
-    names = {f.name for f in fields(cls)}
-    unknown = sorted(set(cfg) - names)
+    names = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(cfg) - set(names))
     if unknown:
         raise ConfigError(f"{setting}.{unknown[0]}", cfg[unknown[0]], f"keys {sorted(names)}")
+    for key, value in cfg.items():
+        t = names[key].type
+        kind = t.__name__ if isinstance(t, type) else str(t)
+        where = f"{setting}.{key}"
+        if kind == "bool":
+            if not isinstance(value, bool):
+                raise ConfigError(where, value, "true or false")
+            continue
+        if kind == "int" and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ConfigError(where, value, "an integer")
+        if kind == "float" and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                or not np.isfinite(value)):
+            raise ConfigError(where, value, "a number")
+        if kind in ("int", "float"):
+            if key in _POSITIVE and not value > 0:
+                raise ConfigError(where, value, "a number > 0")
+            if value < 0:
+                raise ConfigError(where, value, "a number >= 0")
+            if key in _AT_MOST_ONE and value > 1:
+                raise ConfigError(where, value, "a fraction in [0, 1]")
     return cls(**cfg)
 
 
@@ -64,7 +91,13 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
         raise ConfigError("data.version", data_cfg["version"],
                           f"{GENERATOR_VERSION} (the data code in this checkout; the key is part of every run's "
                           "config hash so that runs on older data sets are not taken for finished ones)")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError("seed", seed, "an integer >= 0")
+    workers = data_cfg.get("workers", 1)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError("data.workers", workers, "an integer >= 1 (processes generating scenes)")
     root = Path(str(data_cfg["root"]))
+    _remove_stale_temps(root, log)
     params = {"source": name, "version": GENERATOR_VERSION, "seed": seed,
               **{k: v for k, v in data_cfg.items() if k not in ("root", "workers")}}
     h = params_hash(params)
@@ -86,11 +119,40 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
     return root
 
 
+def _remove_stale_temps(root: Path, log) -> None:
+    """Remove ``<root>.tmp-<pid>`` / ``<root>.old-<pid>`` folders whose process is gone (a killed
+    ``prepare``), on every call: also when the data set is up to date and nothing is rebuilt."""
+    if not root.parent.is_dir():
+        return
+    for pattern in (root.name + ".tmp-*", root.name + ".old-*"):
+        for stale in root.parent.glob(pattern):
+            pid = stale.name.rsplit("-", 1)[-1]
+            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(pid):
+                shutil.rmtree(stale, ignore_errors=True)
+                log(f"[prepare] removed {stale} (left by process {pid}, which is gone)")
+
+
+def _die_with_parent(parent: int) -> None:
+    """Pool initializer: the worker gets SIGKILL when the process that started it dies (Linux
+    ``PR_SET_PDEATHSIG``), so that killing ``prepare`` does not leave its workers running; elsewhere
+    the generator's own check between frames (:func:`pcrcg.data.synthmatch.set_parent`) remains."""
+    set_parent(parent)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            import signal
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):  # pragma: no cover - no prctl
+            pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
 def _atomic_build(root: Path, h: str, params: dict, job: Callable[[Path], dict], log) -> None:
     root.parent.mkdir(parents=True, exist_ok=True)
-    for stale in root.parent.glob(root.name + ".tmp-*"):  # left by interrupted runs
-        if not _pid_alive(stale.name.rsplit("-", 1)[-1]):
-            shutil.rmtree(stale, ignore_errors=True)
+    _remove_stale_temps(root, log)
     tmp = root.parent / f"{root.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
@@ -195,7 +257,7 @@ def _prepare_synthmatch(tmp: Path, data_cfg: Mapping[str, Any], seed: int, log) 
         import multiprocessing as mp
 
         with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
-                                 initializer=set_parent, initargs=(os.getpid(),)) as pool:
+                                 initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
             for r in pool.map(_generate_scene_star, args):
                 results.append(r)
                 bar.update()

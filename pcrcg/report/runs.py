@@ -13,8 +13,11 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
     """All runs of the named experiments (those that exist), one row per run.
 
     Columns: ``run_id, experiment_id, status, start_time, end_time, experiment`` and MLflow's
-    ``metrics.*``, ``params.*``, ``tags.*``.
+    ``metrics.*``, ``params.*``, ``tags.*``. Stale runs (RUNNING, but their process is gone: killed
+    outright, not yet closed by a relaunch; :func:`pcrcg.tracking.runs.is_stale`) are left out.
     """
+    from pcrcg.tracking.runs import is_stale
+
     from mlflow.entities import ViewType
 
     from pcrcg.tracking.store import client
@@ -33,6 +36,8 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
     while True:
         page = c.search_runs(list(ids), run_view_type=ViewType.ACTIVE_ONLY, max_results=1000, page_token=token)
         for r in page:
+            if is_stale(r.info.status, r.data.tags):
+                continue
             row = {"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
                    "start_time": pd.to_datetime(r.info.start_time, unit="ms", utc=True),
                    "end_time": pd.to_datetime(r.info.end_time, unit="ms", utc=True) if r.info.end_time else pd.NaT}

@@ -240,7 +240,7 @@ class PyramidCache:
         if not path.is_file():
             return None
         try:
-            with np.load(path) as z:
+            with np.load(path, allow_pickle=False) as z:  # a cache file never runs code: a bad one is rebuilt
                 if str(z["key"]) != repr(key):
                     return None
                 get = lambda name: [z[k] for k in sorted((k for k in z.files if k.startswith(name + "_")),  # noqa: E731
