@@ -350,15 +350,20 @@ def source_key(cfg: Any, key: str) -> str:
     seen = set()
     while key not in seen:
         seen.add(key)
-        parent, _, name = key.rpartition(".")
-        node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
-        if not isinstance(node, DictConfig) or name not in node:
+        parts = key.split(".")
+        for k in range(len(parts), 0, -1):  # the key itself, then the nodes above it (data.synth: ${profile.synth})
+            parent, name = ".".join(parts[: k - 1]), parts[k - 1]
+            node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+            if not isinstance(node, DictConfig) or name not in node:
+                continue
+            raw = node._get_node(name)._value()  # type: ignore[union-attr]
+            m = _INTERPOLATION.fullmatch(raw.strip()) if isinstance(raw, str) else None
+            if m is None or OmegaConf.select(cfg, m.group(1), default=_UNSET) is _UNSET:
+                continue  # not an interpolation, or its default is used (the key is not set)
+            key = ".".join([m.group(1), *parts[k:]])
             break
-        raw = node._get_node(name)._value()  # type: ignore[union-attr]
-        m = _INTERPOLATION.fullmatch(raw.strip()) if isinstance(raw, str) else None
-        if m is None or OmegaConf.select(cfg, m.group(1), default=_UNSET) is _UNSET:
-            break  # not an interpolation, or its default is used (the key is not set)
-        key = m.group(1)
+        else:
+            break
     return key
 
 
