@@ -15,7 +15,7 @@ set -u
 PYTHON=${PYTHON:-python}
 PROFILE=${1:-cpu}
 shift || true
-EXPERIMENTS=${EXPERIMENTS:-"main_results ransac_budget window_size views backbone_2d projection icp_init sift_dlt"}
+EXPERIMENTS=${EXPERIMENTS:-"main_results ransac_budget window_size views views_explicit backbone_2d projection icp_init sift_dlt"}
 
 status=0
 for exp in $EXPERIMENTS; do

@@ -285,3 +285,22 @@ def test_the_2d_branch_is_detached_by_default_and_end_to_end_is_a_setting():
     # the 2D backbone table sweeps both ways
     bb = OmegaConf.load(REPO / "conf" / "experiment" / "backbone_2d.yaml").hydra.sweeper.params
     assert str(bb["encoder2d.training"]).split(",") == ["detached", "end_to_end"]
+
+
+# --------------------------------------------------------------------------- item 2: the views table is implicit
+
+
+def _report_specs():
+    from pcrcg.report.spec import parse_specs
+
+    return parse_specs(OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "report.yaml").specs, resolve=True))
+
+
+def test_views_table_uses_the_implicit_projection_and_explicit_is_a_second_sweep():
+    for exp, proj in (("views", "implicit"), ("views_explicit", "explicit")):
+        cfg = load_run_config([f"+experiment={exp}", "profile=tiny", "views=1"])
+        assert cfg.experiment_name == exp and cfg.projection.name == proj and cfg.projection.views == 1
+    specs = _report_specs()
+    assert all(r.where["projection.name"] == "implicit" for r in specs["views"].rows)
+    assert all(r.where["projection.name"] == "explicit" for r in specs["views_explicit"].rows)
+    assert specs["views_explicit"].experiment == "views_explicit"
