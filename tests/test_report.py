@@ -90,7 +90,7 @@ def store(tmp_path_factory):
     # a run that never ended (crashed worker)
     views = RunTracker(uri, "views")
     rid = views.start("views=1", {"config_hash": "v1", "profile": "cpu", "experiment": "views"})
-    views.log_params(rid, {"views": 1, "seed": 0})
+    views.log_params(rid, {"views": 1, "projection.name": "implicit", "seed": 0})
     out = root / "reports"
     result = generate_report(_report_cfg(out, uri, profile="cpu"), base_dir=root, command="python -m pcrcg.report")
     return {"uri": uri, "root": root, "out": out, "ids": ids, "result": result, "running": rid}
@@ -189,7 +189,7 @@ def test_failed_missing_and_running_cells_are_dashes_with_reasons(store):
     one = views[views["variant"] == "1"].iloc[0]
     assert one["reason"] == f"still running or crashed (run {store['running'][:8]})"
     two = views[views["variant"] == "2"].iloc[0]
-    assert two["reason"] == "no run of experiment 'views' with views=2 at profile cpu"
+    assert two["reason"] == "no run of experiment 'views' with views=2, projection.name=implicit at profile cpu"
     tex = (store["out"] / "window_size.tex").read_text()
     assert r"PCR-CG 17x17 (ours) & -- [1] & -- [1] & -- [1] & -- [1] & -- [1] \\" in tex
     assert "% [1] failed: out of memory" in tex
