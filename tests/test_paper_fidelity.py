@@ -304,3 +304,24 @@ def test_views_table_uses_the_implicit_projection_and_explicit_is_a_second_sweep
     assert all(r.where["projection.name"] == "implicit" for r in specs["views"].rows)
     assert all(r.where["projection.name"] == "explicit" for r in specs["views_explicit"].rows)
     assert specs["views_explicit"].experiment == "views_explicit"
+
+
+# --------------------------------------------------------------------------- item 11: Pri3D pretraining data
+
+
+@pytest.mark.parametrize("profile", ["tiny", "cpu", "paper"])
+def test_pri3d_pretraining_sees_other_rooms_than_the_benchmark_and_the_weights_say_so(profile):
+    from conftest import compose
+
+    from pcrcg.pretrain2d.core import _plain, default_checkpoint, pretrained_on
+
+    pre = _plain(compose("pretrain2d", [f"profile={profile}"]))
+    run = load_run_config([f"profile={profile}", "encoder2d=pri3d"], validate=False)
+    # another generator seed, in a folder of its own: the benchmark's data are never touched
+    assert pre["data_seed"] != run.data_seed and pre["data"]["root"] != run.data.root
+    assert pre["data"]["name"] == run.data.name == "synthmatch"
+    assert pretrained_on(pre) == f"synthmatch-seed{pre['data_seed']}" == run.encoder2d.pretrained_on
+    # the run looks for the weights exactly where the pretraining writes them
+    assert default_checkpoint(pre, Path(".")) == Path(run.encoder2d.weights)
+    # real frames are named by their data set
+    assert pretrained_on({"data": {"name": "redkitchen"}, "data_seed": 0}) == "redkitchen"

@@ -377,12 +377,21 @@ def _abs(path: Any, base: Path) -> Path:
     return p if p.is_absolute() else base / p
 
 
+def pretrained_on(cfg: Mapping[str, Any]) -> str:
+    """What the pretraining sees, as ``encoder2d.pretrained_on`` names it: ``<data.name>-seed<data_seed>`` for
+    generated data (another seed = other rooms than the benchmark's seed 0), ``<data.name>`` for real frames."""
+    name = str(_get(cfg, "data.name", "data"))
+    if _get(cfg, "data.synth") is not None:  # generated
+        return f"{name}-seed{int(cfg.get('data_seed', 0) or 0)}"
+    return name
+
+
 def default_checkpoint(cfg: Mapping[str, Any], base: Path) -> Path:
-    """``<paths.checkpoints>/pretrain2d/<data.name>-<profile.name>/pri3d_<arch>.pth`` (or ``out``)."""
+    """``<paths.checkpoints>/pretrain2d/<pretrained_on>-<profile.name>/pri3d_<arch>.pth`` (or ``out``)."""
     if cfg.get("out"):
         return _abs(cfg["out"], base)
     root = _abs(_get(cfg, "paths.checkpoints", "checkpoints"), base)
-    tag = f"{_get(cfg, 'data.name', 'data')}-{_get(cfg, 'profile.name', 'default')}"
+    tag = f"{pretrained_on(cfg)}-{_get(cfg, 'profile.name', 'default')}"
     return root / "pretrain2d" / tag / f"pri3d_{_get(cfg, 'encoder2d.arch', 'resnet18')}.pth"
 
 
@@ -496,6 +505,7 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             "eval_points": int(sum(len(it.matches) for it in items)), "pixel_threshold": s.pixel_threshold,
             "image_size": list(s.image_size) if s.image_size else None, "arch": model.arch,
             "init": str(enc_cfg.get("name", "scratch")), "eval_split": eval_split, "config_hash": h,
+            "pretrained_on": pretrained_on(data), "data_root": str(root),
             "reused": False, "run_id": run_id,
         })
         result["seconds"] = round(time.time() - t0, 1)
