@@ -18,6 +18,9 @@ class DataError(PcrcgError, ValueError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self):  # crosses process pools intact (the default would call DataError(message))
+        return (DataError, (self.path, self.problem))
+
 
 class ConfigError(PcrcgError, ValueError):
     """A configuration value is invalid. The message names the setting and what is allowed."""
@@ -27,6 +30,9 @@ class ConfigError(PcrcgError, ValueError):
         self.value = value
         self.allowed = allowed
         super().__init__(f"invalid config value {setting}={value!r}: allowed {allowed}")
+
+    def __reduce__(self):
+        return (ConfigError, (self.setting, self.value, self.allowed))
 
 
 class Terminated(KeyboardInterrupt):

@@ -19,6 +19,7 @@ import numpy as np
 from pcrcg.data.build import SceneResult, build_scene
 from pcrcg.data.fusion import FusionConfig
 from pcrcg.data.layout import Layout, write_color, write_depth, write_matrix
+from pcrcg.errors import DataError
 from pcrcg.data.pairs import PairConfig
 from pcrcg.data.synth.camera import ScanConfig, ScanPath, _smooth
 from pcrcg.data.synth.render import RoomRenderer, SensorModel
@@ -91,9 +92,31 @@ def auto_exposure(previous: float | None, linear, dt: float, target: float = 0.1
     return float(np.exp((1 - a) * np.log(previous) + a * np.log(want)))
 
 
+MAX_ATTEMPTS = 5
+MIN_DEPTH_SHARE = 0.1  # a fragment whose frames hold less depth than this on average is a bad scan
+
+
+class BadScan(Exception):
+    """A scan with a fragment that sees (almost) nothing in depth range: drawn again."""
+
+
 def render_scene(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel) -> list[int]:
-    """Render one scene's frames into ``<root>/rgbd/<scene>/seq-01``; returns the frame ids."""
-    rng = np.random.default_rng([seed, index])
+    """Render one scene's frames into ``<root>/rgbd/<scene>/seq-01``; returns the frame ids.
+
+    A scan whose camera faces a surface closer than the sensor's range (or a window) for a whole
+    fragment is drawn again, room and path, from the next seed of the scene (at most
+    ``MAX_ATTEMPTS`` times): the result still depends only on ``(seed, index)``."""
+    for attempt in range(MAX_ATTEMPTS):
+        try:
+            return _render_attempt(layout, index, seed, cfg, sensor, attempt)
+        except BadScan as exc:
+            last = exc
+    raise DataError(layout.rgbd_dir(scene_name(index)), f"no usable scan in {MAX_ATTEMPTS} attempts ({last})")
+
+
+def _render_attempt(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel,
+                    attempt: int) -> list[int]:
+    rng = np.random.default_rng([seed, index] if attempt == 0 else [seed, index, attempt])
     scene = scene_name(index)
     room = make_room(rng)
     n_frames = cfg.fragments_per_scene * cfg.frames_per_fragment
@@ -108,6 +131,7 @@ def render_scene(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor
     seq_dir.mkdir(parents=True, exist_ok=True)
     write_matrix(layout.intrinsics(scene), K)
     gain = None
+    depth_share = np.zeros(n_frames)
     for k in range(n_frames):
         if _orphaned():
             raise SystemExit(f"parent process gone; stopping {scene}")
@@ -120,6 +144,11 @@ def render_scene(layout: Layout, index: int, seed: int, cfg: SynthConfig, sensor
             blur = renderer.image_motion(p0, p1, K, rad.depth)
         color = renderer.expose(rad.linear, gain, rng, blur)
         depth = renderer.sensor_depth(rad, rng)
+        depth_share[k] = float(np.mean(depth > 0))
+        if (k + 1) % cfg.frames_per_fragment == 0:
+            share = depth_share[k + 1 - cfg.frames_per_fragment : k + 1].mean()
+            if share < MIN_DEPTH_SHARE:
+                raise BadScan(f"fragment {k // cfg.frames_per_fragment} of attempt {attempt}: {share:.1%} of pixels with depth")
         prefix = layout.frame_prefix(scene, SEQ, k)
         write_color(str(prefix) + ".color.png", color)
         write_depth(str(prefix) + ".depth.png", depth)

@@ -47,7 +47,7 @@ class _Smooth:
 @dataclass
 class ScanConfig:
     walk_speed: float = 0.25  # m/s along the loop at most
-    turn_rate_deg: float = 15.0  # deg/s the view turns on average
+    turn_rate_deg: float = 20.0  # deg/s the view turns on average
     pitch_deg: float = -28.0  # mean tilt (down)
     gaze_swing_deg: float = 15.0  # amplitude of left-right looks
     height: tuple[float, float] = (1.25, 1.65)
@@ -82,7 +82,7 @@ class ScanPath:
         kern = np.array([0.1, 0.2, 0.4, 0.2, 0.1])
         reach = np.convolve(np.concatenate([reach[-2:], reach, reach[:2]]), kern, "valid")  # circular smoothing
         # inwards: round the table at arm's length beyond its edge; outwards: near the middle
-        self.reach = np.minimum(reach * 0.7, rng.uniform(1.0, 1.5)) if self.inward else reach * rng.uniform(0.15, 0.35)
+        self.reach = np.minimum(reach * 0.8, rng.uniform(1.2, 1.8)) if self.inward else reach * rng.uniform(0.15, 0.35)
         self.pts = pts
         self.direction = float(rng.choice([-1.0, 1.0]))
         self.theta0 = rng.uniform(0, 2 * np.pi)

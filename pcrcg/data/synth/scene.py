@@ -230,7 +230,7 @@ def _place_along_walls(room: Room, rng, walls: list[Wall], floor: Floor, rtype: 
     for wall in walls:
         s = rng.uniform(0.05, 0.6)
         while s < wall.length - 0.4:
-            if rng.random() < 0.25:
+            if rng.random() < 0.1:
                 s += rng.uniform(0.3, 1.0)
                 continue
             kind = str(rng.choice(names, p=p))
@@ -282,7 +282,7 @@ def _place_interior(room: Room, rng, floor: Floor, rtype: str, tops: list) -> No
         "corridor": [("plant", 0.5), ("bin", 0.5), ("carton", 1.0)],
     }[rtype]
     for what, rate in plan:
-        for _ in range(int(rng.poisson(rate))):
+        for _ in range(int(rng.poisson(1.5 * rate))):
             _place_one(room, rng, floor, what, tops)
 
 
@@ -402,7 +402,7 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
         if top.M[2, 3] < 1.6:
             room.panels += F.clutter_on(rng, top, density=rng.uniform(0.8, 1.8))
     # floor clutter and rugs
-    for what, rate in (("carton", 4.0), ("plant", 1.0), ("bin", 0.5), ("chair", 0.5)):
+    for what, rate in (("carton", 6.0), ("plant", 1.5), ("bin", 0.8), ("chair", 1.0)):
         for _ in range(int(rng.poisson(rate))):
             _place_one(room, rng, floor, what, tops)
     for _ in range(int(rng.poisson(0.8))):
@@ -423,6 +423,6 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
     room.light_power = rng.uniform(1.5, 4.0, size=n_lights) / n_lights
     room.ambient = float(rng.uniform(0.2, 0.4))
     room.cell = CELL
-    room.walkable = floor.walkable(0.35)
+    room.walkable = floor.walkable(0.55)
     room.room_type = rtype
     return room
