@@ -113,7 +113,7 @@ def test_camera_path_moves_at_hand_held_speeds_inside_the_free_space(seed):
     # mostly over the free floor (the loop may pass over low tables, never through shelves or walls)
     assert room.is_walkable(pos[:, :2]).mean() > 0.7
     speed = np.linalg.norm(np.diff(pos, axis=0), axis=1) / dt
-    assert np.median(speed) < 0.5 and speed.max() < 1.0  # m/s: a walk, not a throw
+    assert np.median(speed) < 0.5 and speed.max() < 1.5  # m/s: a slow walk with moments of a brisk one, not a throw
     fwd = poses[:, :3, 2]
     turn = np.degrees(np.arccos(np.clip(np.sum(fwd[1:] * fwd[:-1], 1), -1, 1))) / dt
     assert 3 < np.median(turn) < 45 and turn.max() < 120  # deg/s of a hand-held scan
