@@ -400,6 +400,10 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
     leaves the metrics in ``ctx.metrics``. The run is finished in the store at the end."""
     cfg, tracker, run_id = ctx.cfg, ctx.tracker, ctx.run_id
     timings: dict[str, float] = {}
+    yield "2D pretraining"
+    t = time.perf_counter()
+    if _make_2d_weights(ctx, data) is not None:
+        timings["time/pretrain2d_s"] = time.perf_counter() - t
     yield "checks"
     preflight(data)
     yield "prepare"
@@ -434,6 +438,14 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
             tracker.log_artifact(run_id, ctx.out_dir / f, None if f == "metrics.json" else f)
         tracker.finish(run_id)
     ctx.metrics = metrics
+
+
+def _make_2d_weights(ctx: RunContext, data: Mapping[str, Any]) -> Path | None:
+    """``encoder2d=pri3d`` with ``encoder2d.make``: the missing default weights are made first
+    (:mod:`pcrcg.pretrain2d.make`, once per sweep)."""
+    from pcrcg.pretrain2d.make import make_missing_weights
+
+    return make_missing_weights(data, ctx.job.base_dir, log=print, hydra_dir=ctx.out_dir / "pretrain2d")
 
 
 def _check_inputs(ctx: RunContext) -> None:

@@ -325,3 +325,49 @@ def test_pri3d_pretraining_sees_other_rooms_than_the_benchmark_and_the_weights_s
     assert default_checkpoint(pre, Path(".")) == Path(run.encoder2d.weights)
     # real frames are named by their data set
     assert pretrained_on({"data": {"name": "redkitchen"}, "data_seed": 0}) == "redkitchen"
+
+
+# --------------------------------------------------------------------------- item 3: Pri3D weights where the captions say
+
+
+PRI3D_EXPERIMENTS = ("main_results", "window_size", "views", "views_explicit", "icp_init", "ransac_budget")
+
+
+@pytest.mark.parametrize("experiment", PRI3D_EXPERIMENTS)
+def test_the_tables_whose_captions_say_pri3d_run_with_pri3d_weights(experiment):
+    cfg = load_run_config([f"+experiment={experiment}", "profile=tiny"])
+    assert cfg.encoder2d.name == "pri3d" and cfg.encoder2d.make is True
+    assert cfg.encoder2d.weights.endswith("pretrain2d/synthmatch-seed1-tiny/pri3d_resnet18.pth")
+    if experiment != "icp_init":
+        specs = _report_specs()
+        tables = [s for s in specs.values() if s.experiment == experiment]
+        assert tables and all(r.where.get("encoder2d.name") == "pri3d" for t in tables for r in t.rows
+                              if r.where and r.where.get("label") != "Predator" and r.experiment in (None, experiment))
+
+
+def test_a_run_makes_its_missing_pri3d_weights_once(tmp_path):
+    from pcrcg.pretrain2d.make import make_missing_weights, pretrain_overrides
+    from pcrcg.tracking.hashing import to_plain
+
+    weights = tmp_path / "w" / "pri3d_resnet18.pth"
+    data = to_plain(load_run_config(["+experiment=main_results", "profile=tiny", f"encoder2d.weights={weights}",
+                                     "logger=none"], validate=False))
+    ov = pretrain_overrides(data, weights)
+    assert {"profile=tiny", "data=synthmatch_pretrain", "data_seed=1", f"out={weights}", "encoder2d.arch=resnet18",
+            "encoder2d.out_dim=32", "logger=none", "profile.pretrain2d.steps=60"} <= set(ov)
+    calls = []
+
+    def fake_run(cmd, **kw):
+        calls.append(cmd)
+        weights.write_bytes(b"weights")
+        return type("P", (), {"returncode": 0, "stdout": '{"match_acc_scratch": 0.1, "match_acc_pretrained": 0.2}'})()
+
+    assert make_missing_weights(data, tmp_path, log=lambda m: None, run=fake_run) == weights
+    assert calls and calls[0][1:3] == ["-m", "pcrcg.pretrain2d"]
+    assert make_missing_weights(data, tmp_path, log=lambda m: None, run=fake_run) is None  # made once
+    assert len(calls) == 1
+    # geometry only (features=none) needs no 2D weights
+    weights.unlink()
+    geo = to_plain(load_run_config(["+experiment=main_results", "profile=tiny", "features=none",
+                                    f"encoder2d.weights={weights}"], validate=False))
+    assert make_missing_weights(geo, tmp_path, log=lambda m: None, run=fake_run) is None and len(calls) == 1

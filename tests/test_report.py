@@ -55,21 +55,21 @@ def store(tmp_path_factory):
     ids = {}
     tr = RunTracker(uri, "window_size")
     # an older run of 11x11 seed 0 whose config changed since: the newer run of that seed counts
-    ids["old"] = _log(tr, "window_size=11", {"window_size": 11, "seed": 0},
+    ids["old"] = _log(tr, "window_size=11", {"window_size": 11, "seed": 0, "encoder2d.name": "pri3d"},
                       {"config_hash": "old110", "profile": "cpu", "label": "PCR-CG"},
                       {f"3DLoMatch/rr_{n}": 0.0 for n in N})
     for ws in (3, 7, 11):
         for seed in (0, 1):
             metrics = {f"3DLoMatch/rr_{n}": _rr(ws, seed, n) for n in N}
             metrics["color_coverage"] = 0.5 + 0.1 * seed
-            ids[(ws, seed)] = _log(tr, f"window_size={ws}", {"window_size": ws, "seed": seed,
+            ids[(ws, seed)] = _log(tr, f"window_size={ws}", {"window_size": ws, "seed": seed, "encoder2d.name": "pri3d",
                                                             "protocol.3DLoMatch.n_pairs": 1781,
                                                             "eval.ransac_iterations": 50000},
                                    {"config_hash": f"h{ws}{seed}", "profile": "cpu", "label": "PCR-CG"}, metrics)
-    _log(tr, "window_size=17", {"window_size": 17, "seed": 0}, {"config_hash": "h170", "profile": "cpu"}, {},
+    _log(tr, "window_size=17", {"window_size": 17, "seed": 0, "encoder2d.name": "pri3d"}, {"config_hash": "h170", "profile": "cpu"}, {},
          status="FAILED", error=MemoryError("out of memory at 17x17"))
     # a tiny-profile run that must not leak into the cpu table
-    _log(tr, "window_size=3", {"window_size": 3, "seed": 5}, {"config_hash": "t3", "profile": "tiny"},
+    _log(tr, "window_size=3", {"window_size": 3, "seed": 5, "encoder2d.name": "pri3d"}, {"config_hash": "t3", "profile": "tiny"},
          {f"3DLoMatch/rr_{n}": 1.0 for n in N})
     tr = RunTracker(uri, "main_results")
     for label, base in (("Predator", 60.0), ("PCR-CG", 66.0)):
@@ -79,7 +79,7 @@ def store(tmp_path_factory):
                 metrics[f"{b}/rr_{n}"] = base + off
                 metrics[f"{b}/fmr_{n}"] = base + off + 5
             metrics[f"{b}/rre"], metrics[f"{b}/rte"] = 2.5, 0.08
-        _log(tr, f"features={'none' if label == 'Predator' else 'deep'}", {"seed": 0, "icp_init": "identity"},
+        _log(tr, f"features={'none' if label == 'Predator' else 'deep'}", {"seed": 0, "icp_init": "identity", "encoder2d.name": "pri3d"},
              {"config_hash": f"m{label}", "profile": "cpu", "label": label}, metrics)
     tr = RunTracker(uri, "icp_init")
     for method in ("icp", "color_icp"):
@@ -90,7 +90,7 @@ def store(tmp_path_factory):
     # a run that never ended (crashed worker)
     views = RunTracker(uri, "views")
     rid = views.start("views=1", {"config_hash": "v1", "profile": "cpu", "experiment": "views"})
-    views.log_params(rid, {"views": 1, "projection.name": "implicit", "seed": 0})
+    views.log_params(rid, {"views": 1, "projection.name": "implicit", "encoder2d.name": "pri3d", "seed": 0})
     out = root / "reports"
     result = generate_report(_report_cfg(out, uri, profile="cpu"), base_dir=root, command="python -m pcrcg.report")
     return {"uri": uri, "root": root, "out": out, "ids": ids, "result": result, "running": rid}
@@ -189,7 +189,7 @@ def test_failed_missing_and_running_cells_are_dashes_with_reasons(store):
     one = views[views["variant"] == "1"].iloc[0]
     assert one["reason"] == f"still running or crashed (run {store['running'][:8]})"
     two = views[views["variant"] == "2"].iloc[0]
-    assert two["reason"] == "no run of experiment 'views' with views=2, projection.name=implicit at profile cpu"
+    assert two["reason"] == "no run of experiment 'views' with views=2, projection.name=implicit, encoder2d.name=pri3d at profile cpu"
     tex = (store["out"] / "window_size.tex").read_text()
     assert r"PCR-CG 17x17 (ours) & -- [1] & -- [1] & -- [1] & -- [1] & -- [1] \\" in tex
     assert "% [1] failed: out of memory" in tex

@@ -376,7 +376,7 @@ def report(tmp_path_factory):
         flip = {b: {s: v ^ (rng.random(len(v)) < 0.1) for s, v in base[b].items()} for b in base}
         better = {"3DMatch": flip["3DMatch"], "3DLoMatch": _more(rng, flip["3DLoMatch"], gts["3DLoMatch"], 0.3)}
         for label, ok in (("Predator", flip), ("PCR-CG", better)):
-            ids[(label, seed)] = _learned_run(tr, work, f"{label} seed={seed}", {"seed": seed},
+            ids[(label, seed)] = _learned_run(tr, work, f"{label} seed={seed}", {"seed": seed, "encoder2d.name": "pri3d"},
                                               {"label": label, "config_hash": f"{label}{seed}"}, gts, ok, irs=irs)
     lo = {"3DLoMatch": gts["3DLoMatch"]}
     # window_size: 3x3 = 7x7 (7x7 logged before the per-pair file: recomputed from est.log + gt on disk),
@@ -386,18 +386,21 @@ def report(tmp_path_factory):
     w11 = _more(rng, w3, lo["3DLoMatch"], 0.3)
     w17 = _more(rng, w11, lo["3DLoMatch"], 0.3)
     for ws, ok, pairs in ((3, w3, True), (7, w3, False), (11, w11, True), (17, w17, True)):
-        ids[ws] = _learned_run(tr, work, f"window_size={ws}", {"window_size": ws, "seed": 0, "data.root": "data/bench"},
+        ids[ws] = _learned_run(tr, work, f"window_size={ws}", {"window_size": ws, "seed": 0, "data.root": "data/bench",
+                                                                       "encoder2d.name": "pri3d"},
                                {"label": "PCR-CG", "config_hash": f"w{ws}"}, lo, {"3DLoMatch": ok}, pairs=pairs)
     # views: 1 view logged metrics only; 2 views est.log but its data root is gone; 3 views complete
     tr = RunTracker(uri, "views")
     for v, kw in ((1, {"pairs": False, "est": False}), (2, {"pairs": False}), (3, {})):
-        ids[f"v{v}"] = _learned_run(tr, work, f"views={v}", {"views": v, "seed": 0, "data.root": "data/gone"},
+        ids[f"v{v}"] = _learned_run(tr, work, f"views={v}", {"views": v, "seed": 0, "data.root": "data/gone",
+                                                                    "projection.name": "implicit", "encoder2d.name": "pri3d"},
                                     {"label": "PCR-CG", "config_hash": f"v{v}"}, lo, {"3DLoMatch": w3}, **kw)
     # backbone_2d: ImageNet's logged recall does not match its est.log (benchmark files changed since the run)
     tr = RunTracker(uri, "backbone_2d")
     for enc, kw in (("scratch", {}), ("imagenet", {"pairs": False, "bias": 5.0})):
         ids[enc] = _learned_run(tr, work, f"encoder2d={enc}", {"encoder2d.name": enc, "seed": 0,
-                                                               "data.root": "data/bench"},
+                                                               "data.root": "data/bench", "features.name": "deep",
+                                                               "encoder2d.training": "detached"},
                                 {"label": "PCR-CG", "config_hash": enc}, lo, {"3DLoMatch": w3}, **kw)
     out = root / "reports"
     result = generate_report(_report_cfg(out, uri, profile="cpu"), base_dir=root, command="python -m pcrcg.report")
@@ -442,10 +445,10 @@ def test_missing_per_pair_outcomes_say_why(report):
     assert "logged neither per-pair outcomes (pairs/3DLoMatch.csv) nor est.log files" in one.reason
     two = _line(report, "views", "3 views − 2 views", "3DLoMatch RR 5000")
     assert "benchmark files" in two.reason and "data/gone" in two.reason
-    enc = _line(report, "backbone_2d", "PCR-CG ImageNet − PCR-CG Scratch", "3DLoMatch RR 5000")
+    enc = _line(report, "backbone_2d", "ImageNet, detached (official code) − Scratch, detached (official code)", "3DLoMatch RR 5000")
     assert enc.interval is None and "the run logged" in enc.reason and "regenerated" in enc.reason
     # no ordering in the paper (ties) and rows the paper does not have
-    tie = _line(report, "backbone_2d", "PCR-CG Pri3D − PCR-CG ImageNet", "3DLoMatch RR 5000")
+    tie = _line(report, "backbone_2d", "Pri3D, detached (official code) − ImageNet, detached (official code)", "3DLoMatch RR 5000")
     assert tie.verdict == PAPER_TIE
 
 
