@@ -319,11 +319,23 @@ def needs_training(cfg: DictConfig) -> bool:
     return cfg.method == "learned" or (cfg.method in CLASSICAL_METHODS and cfg.icp_init == "learned")
 
 
+def _make_2d_weights(cfg: DictConfig, job: JobInfo, data: Mapping[str, Any]) -> None:
+    """``encoder2d=pri3d`` with ``encoder2d.make``: the default weights that the project's training
+    stage needs are made when missing (:mod:`pcrcg.pretrain2d.make`, once per sweep). A run whose
+    ``stages.train`` is its own, or whose model is already trained, makes nothing."""
+    if str(cfg.stages.train) != "pcrcg.pipeline.train_model" or not needs_training(cfg):
+        return
+    from pcrcg.pretrain2d.make import make_missing_weights
+
+    make_missing_weights(data, job.base_dir, log=print, hydra_dir=job.output_dir / "pretrain2d")
+
+
 def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     """Run one configured job end to end (see module docstring). Returns what happened."""
     t0 = time.perf_counter()
     data = to_plain(cfg)  # resolved once: interpolation is the slow part of OmegaConf
     validate_run_config(cfg, job.choices, job.search_dirs, data=data)
+    _make_2d_weights(cfg, job, data)  # before the hash: it holds the weights file's digest
     h = config_hash(data)
     name = run_name(job.overrides)
     job.output_dir.mkdir(parents=True, exist_ok=True)
@@ -400,10 +412,6 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
     leaves the metrics in ``ctx.metrics``. The run is finished in the store at the end."""
     cfg, tracker, run_id = ctx.cfg, ctx.tracker, ctx.run_id
     timings: dict[str, float] = {}
-    yield "2D pretraining"
-    t = time.perf_counter()
-    if _make_2d_weights(ctx, data) is not None:
-        timings["time/pretrain2d_s"] = time.perf_counter() - t
     yield "checks"
     preflight(data)
     yield "prepare"
@@ -438,14 +446,6 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
             tracker.log_artifact(run_id, ctx.out_dir / f, None if f == "metrics.json" else f)
         tracker.finish(run_id)
     ctx.metrics = metrics
-
-
-def _make_2d_weights(ctx: RunContext, data: Mapping[str, Any]) -> Path | None:
-    """``encoder2d=pri3d`` with ``encoder2d.make``: the missing default weights are made first
-    (:mod:`pcrcg.pretrain2d.make`, once per sweep)."""
-    from pcrcg.pretrain2d.make import make_missing_weights
-
-    return make_missing_weights(data, ctx.job.base_dir, log=print, hydra_dir=ctx.out_dir / "pretrain2d")
 
 
 def _check_inputs(ctx: RunContext) -> None:

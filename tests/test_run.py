@@ -33,6 +33,11 @@ def sweep(tmp_path_factory):
             return ["--config-path", str(conf), f"+experiment={exp}", "profile=tiny", *FAKES,
                     f"hydra.sweep.dir={root}/multirun/{name}", "-m"]
 
+        # window_size runs with Pri3D weights (its caption): a stand-in file where the default points (the fake
+        # stages never read it); the backbone sweep below runs without it (pri3d: not run)
+        pri3d = root / "checkpoints" / "pretrain2d" / "synthmatch-seed1-tiny" / "pri3d_resnet18.pth"
+        pri3d.parent.mkdir(parents=True)
+        pri3d.write_bytes(b"stand-in")
         mp.setenv("PCRCG_FAKE_FAIL", "window_size=7")
         out["rc_fail"] = run_cli(sweep_args("a"), root, mp)
         out["status_fail"] = read_status_files(root / "multirun" / "a")
@@ -45,6 +50,7 @@ def sweep(tmp_path_factory):
         out["rc_again"] = run_cli(sweep_args("c"), root, mp)
         out["status_again"] = read_status_files(root / "multirun" / "c")
         out["train_calls_3"] = (root / "train_calls.txt").read_text().splitlines()
+        pri3d.unlink()
         out["rc_backbone"] = run_cli(sweep_args("d", "backbone_2d"), root, mp)
         out["status_backbone"] = read_status_files(root / "multirun" / "d")
     return out
@@ -139,15 +145,17 @@ def test_report_after_the_sweep(sweep):
 def test_missing_weights_is_reported_as_not_run(sweep):
     assert sweep["rc_backbone"] == 0  # "not run" is a reason, not a failure of the sweep
     status = {s["run_name"]: s["status"] for s in sweep["status_backbone"]}
-    assert status == {"encoder2d=scratch": "finished", "encoder2d=imagenet": "not_run", "encoder2d=pri3d": "not_run"}
+    assert status == {f"encoder2d={e} encoder2d.training={t}": ("finished" if e == "scratch" else "not_run")
+                      for e in ("scratch", "imagenet", "pri3d") for t in ("detached", "end_to_end")}
     runs = _by_name(tracked_runs(sweep["uri"], "backbone_2d"))
-    rec = runs["encoder2d=imagenet"][0]
+    rec = runs["encoder2d=imagenet encoder2d.training=detached"][0]
     assert rec.info.status == "FAILED" and rec.data.tags["not_run"] == "true"
     assert "encoder2d.weights" in rec.data.tags["error"]
     md = (sweep["root"] / "reports" / "backbone_2d.md").read_text()
     assert "not run: invalid config value encoder2d.weights=None" in md
     df = pd.read_csv(sweep["root"] / "reports" / "backbone_2d.csv")
-    assert set(df[df["status"] == "missing"]["variant"]) == {"ImageNet", "Pri3D"}
+    assert set(df[df["status"] == "missing"]["variant"]) == {"ImageNet", "Pri3D", "ImageNet, end to end",
+                                                              "Pri3D, end to end", "DISK"}
 
 
 def test_classical_baseline_single_run_and_single_run_failure(sweep, monkeypatch, capsys):
