@@ -45,7 +45,7 @@ GROUPS = ("data", "profile", "model", "encoder2d", "features", "projection", "ma
 # the implementations the code knows; a group folder's option files are checked against this
 KNOWN_OPTIONS: dict[str, tuple[str, ...]] = {
     "data": ("synthmatch", "redkitchen", "threedmatch"),
-    "profile": ("tiny", "cpu", "paper"),
+    "profile": ("tiny", "cpu", "paper", "official"),
     "encoder2d": ("scratch", "imagenet", "pri3d"),
     "features": ("none", "rgb", "sift", "deep", "disk"),
     "projection": ("none", "implicit", "explicit"),

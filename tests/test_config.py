@@ -61,7 +61,7 @@ def test_defaults_compose_and_validate(conf):
         (["stages.train=nowhere.train"], "stages.train", "importable"),
         # groups: an option that does not exist names the ones that do
         (["data=kitti"], "data", "synthmatch"),
-        (["profile=huge"], "profile", "cpu, paper, tiny"),
+        (["profile=huge"], "profile", "cpu, official, paper, tiny"),
         (["model=geotransformer"], "model", "predator"),
         (["encoder2d=resnet"], "encoder2d", "imagenet, pri3d, scratch"),
         (["features=normals"], "features", "deep, disk, none, rgb, sift"),
@@ -73,7 +73,7 @@ def test_defaults_compose_and_validate(conf):
         # values inside groups
         (["logger.name=wandb"], "logger.name", "mlflow, none"),
         (["logger.skip_finished=maybe"], "logger.skip_finished", "true or false"),
-        (["profile.name=huge"], "profile.name", "tiny, cpu, paper"),
+        (["profile.name=huge"], "profile.name", "tiny, cpu, paper, official"),
         (["features=deep", "projection=explicit", "features.name=normals"], "features.name", "rgb"),
         (["projection=explicit", "projection.name=orthographic"], "projection.name", "implicit"),
         (["data.name=kitti"], "data.name", "synthmatch"),

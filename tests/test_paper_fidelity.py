@@ -371,3 +371,21 @@ def test_a_run_makes_its_missing_pri3d_weights_once(tmp_path):
     geo = to_plain(load_run_config(["+experiment=main_results", "profile=tiny", "features=none",
                                     f"encoder2d.weights={weights}"], validate=False))
     assert make_missing_weights(geo, tmp_path, log=lambda m: None, run=fake_run) is None and len(calls) == 1
+
+
+# --------------------------------------------------------------------------- item 12: the official training config
+
+
+def test_the_official_training_config_is_a_profile_next_to_paper():
+    paper = load_run_config(["profile=paper"])
+    official = load_run_config(["profile=official"])
+    m = official.model
+    assert (m.first_dim, m.gnn_dim, m.final_dim, official.trainer.max_epochs) == (256, 512, 64, 150)
+    assert (paper.model.first_dim, paper.model.gnn_dim, paper.model.final_dim, paper.trainer.max_epochs) == (
+        128, 256, 32, 30)
+    # everything else is the paper profile's: same voxel and levels, same data set and folder, same Pri3D file
+    assert (m.voxel_size, m.num_layers) == (paper.model.voxel_size, paper.model.num_layers)
+    assert official.data.root == paper.data.root and official.data.synth == paper.data.synth
+    pri3d = [load_run_config([f"profile={p}", "encoder2d=pri3d"], validate=False).encoder2d.weights
+             for p in ("paper", "official")]
+    assert pri3d[0] == pri3d[1]

@@ -391,7 +391,8 @@ def default_checkpoint(cfg: Mapping[str, Any], base: Path) -> Path:
     if cfg.get("out"):
         return _abs(cfg["out"], base)
     root = _abs(_get(cfg, "paths.checkpoints", "checkpoints"), base)
-    tag = f"{pretrained_on(cfg)}-{_get(cfg, 'profile.name', 'default')}"
+    profile = _get(cfg, "profile.data_profile") or _get(cfg, "profile.name", "default")  # official: paper's
+    tag = f"{pretrained_on(cfg)}-{profile}"
     return root / "pretrain2d" / tag / f"pri3d_{_get(cfg, 'encoder2d.arch', 'resnet18')}.pth"
 
 

@@ -59,7 +59,8 @@ def pretrain_overrides(data: Mapping[str, Any], weights: Path) -> list[str]:
                           "yourself and set encoder2d.weights)")
     seed = int(m.group("seed"))
     profile = data.get("profile") if isinstance(data.get("profile"), Mapping) else {}
-    out = [f"profile={profile.get('name', 'cpu')}",
+    # a profile that shares another's data and pretraining (official: paper) makes that profile's weights
+    out = [f"profile={profile.get('data_profile') or profile.get('name', 'cpu')}",
            f"data={'synthmatch' if seed == int(data.get('data_seed', 0) or 0) else 'synthmatch_pretrain'}",
            f"data_seed={seed}", f"out={weights}"]
     for key, v in (profile.get("pretrain2d") or {}).items():
