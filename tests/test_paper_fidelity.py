@@ -389,3 +389,26 @@ def test_the_official_training_config_is_a_profile_next_to_paper():
     pri3d = [load_run_config([f"profile={p}", "encoder2d=pri3d"], validate=False).encoder2d.weights
              for p in ("paper", "official")]
     assert pri3d[0] == pri3d[1]
+
+
+# --------------------------------------------------------------------------- item 4: the paper profile's 2D network
+
+
+def test_the_paper_profiles_2d_net_is_the_official_res50_unet():
+    from pcrcg.lifting import LiftingConfig
+    from pcrcg.vision.encoders import build_encoder
+
+    for profile in ("paper", "official"):
+        cfg = load_run_config([f"profile={profile}", "features=deep", "projection=explicit"], validate=False)
+        enc = cfg.encoder2d
+        assert (enc.arch, enc.out_dim, enc.normalize, enc.output_scale) == ("resnet50", 128, False, "half")
+        assert 1 + LiftingConfig.from_cfg(cfg).out_dim == 129  # the official in_feats_dim
+        assert list(enc.image_size) == [240, 320] and list(cfg.projection.image_size) == [120, 160]
+    net = build_encoder(OmegaConf.to_container(enc, resolve=True))
+    assert net.normalize is False
+    with torch.no_grad():
+        out = net.eval()(torch.rand(1, 3, 64, 80))
+    assert out.shape == (1, 128, 32, 40)  # 128 channels at half the input resolution
+    # the small profiles keep their CPU-sized net
+    small = load_run_config(["profile=cpu"]).encoder2d
+    assert (small.arch, small.out_dim, small.normalize, small.output_scale) == ("resnet18", 32, True, "full")

@@ -2,10 +2,12 @@
 
 Public API
 ----------
-* :class:`ResUNet` ``(arch="resnet18"|"resnet34"|"resnet50", out_dim, decoder_channels=..., normalize=True)``
-  ``nn.Module``: input ``(B, 3, H, W)`` float RGB in [0, 1] (ImageNet mean/std normalisation is
-  applied inside when ``normalize``), output ``(B, out_dim, H, W)`` per-pixel features at the input
-  resolution. ``model.encoder`` is a :class:`ResNetEncoder` whose ``state_dict()`` keys are exactly
+* :class:`ResUNet` ``(arch="resnet18"|"resnet34"|"resnet50", out_dim, decoder_channels=..., normalize=True,
+  output_scale="full"|"half")`` ``nn.Module``: input ``(B, 3, H, W)`` float RGB in [0, 1] (ImageNet
+  mean/std normalisation is applied inside when ``normalize``), output ``(B, out_dim, H, W)`` per-pixel
+  features at the input resolution, or ``(B, out_dim, H/2, W/2)`` with ``output_scale="half"`` (the
+  decoder stops at the stem's scale, as the official PCR-CG Res50 UNet: 128 channels at 120x160 for
+  240x320 images, input not normalised). ``model.encoder`` is a :class:`ResNetEncoder` whose ``state_dict()`` keys are exactly
   torchvision's ``resnet18/34/50().state_dict()`` keys without ``fc.*`` (``conv1.weight``,
   ``bn1.running_mean``, ``layer1.0.conv1.weight``, ``layer2.0.downsample.0.weight``, ...).
   ``model.decoder`` is the U-Net decoder (skips from the stem and each ResNet stage).
@@ -16,6 +18,8 @@ Public API
       weights: PATH or null   # required for imagenet and pri3d
       freeze: false           # encoder parameters frozen (BatchNorm kept in eval mode)
       out_dim: 32             # per-pixel feature width
+      normalize: true         # ImageNet mean/std inside (the official code feeds [0, 1] RGB: false)
+      output_scale: full      # full | half (features at half the input resolution, as the official code)
       load_decoder: true      # pri3d only: also load the decoder (false: encoder weights only)
 
   ``imagenet`` weights: a plain torchvision ResNet state dict file
@@ -48,6 +52,7 @@ from pcrcg.errors import ConfigError, DataError
 ARCHS = {"resnet18": ("basic", (2, 2, 2, 2)), "resnet34": ("basic", (3, 4, 6, 3)), "resnet50": ("bottleneck", (3, 4, 6, 3))}
 INITS = ("scratch", "imagenet", "pri3d")
 PRI3D_FORMAT = "pcrcg-resunet"
+OUTPUT_SCALES = ("full", "half")
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -166,13 +171,17 @@ class _ConvBNReLU(nn.Sequential):
 class UNetDecoder(nn.Module):
     """Upsample the deepest map and fuse each skip (concat + 3x3 conv-BN-ReLU) up to the input
     resolution: skips layer3 (s/16), layer2 (s/8), layer1 (s/4), stem (s/2), the image (s/1); then a
-    1x1 conv to ``out_dim``."""
+    1x1 conv to ``out_dim``. ``half``: the last skip is the stem (output at s/2; 4 widths, or the first 4
+    of 5)."""
 
-    def __init__(self, enc_channels: Sequence[int], channels: Sequence[int], out_dim: int):
+    def __init__(self, enc_channels: Sequence[int], channels: Sequence[int], out_dim: int, half: bool = False):
         super().__init__()
-        if len(channels) != 5:
-            raise ConfigError("encoder2d.decoder_channels", list(channels), "5 widths (s/16, s/8, s/4, s/2, s/1)")
-        skips = list(enc_channels[:4])[::-1] + [3]  # layer3, layer2, layer1, stem, input image
+        n = 4 if half else 5
+        if len(channels) != n and not (half and len(channels) == 5):
+            raise ConfigError("encoder2d.decoder_channels", list(channels),
+                              "4 or 5 widths (s/16, s/8, s/4, s/2[, s/1])" if half else "5 widths (s/16, s/8, s/4, s/2, s/1)")
+        channels = list(channels)[:n]
+        skips = (list(enc_channels[:4])[::-1] + [3])[:n]  # layer3, layer2, layer1, stem[, input image]
         cin = enc_channels[4]
         blocks = []
         for skip, cout in zip(skips, channels):  # one 3x3 conv per scale keeps the CPU budget
@@ -182,7 +191,7 @@ class UNetDecoder(nn.Module):
         self.head = nn.Conv2d(cin, out_dim, 1)
 
     def forward(self, feats: list[torch.Tensor], image: torch.Tensor) -> torch.Tensor:
-        skips = feats[:4][::-1] + [image]
+        skips = (feats[:4][::-1] + [image])[: len(self.blocks)]
         x = feats[4]
         for block, skip in zip(self.blocks, skips):
             x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
@@ -194,16 +203,20 @@ class ResUNet(nn.Module):
     """ResNet encoder (torchvision names) + U-Net decoder: (B, 3, H, W) -> (B, out_dim, H, W)."""
 
     def __init__(self, arch: str = "resnet18", out_dim: int = 32,
-                 decoder_channels: Sequence[int] = (256, 128, 64, 64, 32), normalize: bool = True):
+                 decoder_channels: Sequence[int] = (256, 128, 64, 64, 32), normalize: bool = True,
+                 output_scale: str = "full"):
         super().__init__()
         if int(out_dim) < 1:
             raise ConfigError("encoder2d.out_dim", out_dim, "an integer >= 1")
+        if output_scale not in OUTPUT_SCALES:
+            raise ConfigError("encoder2d.output_scale", output_scale, " | ".join(OUTPUT_SCALES))
         self.arch = arch
         self.out_dim = int(out_dim)
         self.decoder_channels = [int(c) for c in decoder_channels]
         self.normalize = bool(normalize)
+        self.output_scale = output_scale
         self.encoder = ResNetEncoder(arch)
-        self.decoder = UNetDecoder(self.encoder.channels, self.decoder_channels, self.out_dim)
+        self.decoder = UNetDecoder(self.encoder.channels, self.decoder_channels, self.out_dim, half=output_scale == "half")
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.frozen = False
@@ -288,7 +301,8 @@ def save_pri3d_checkpoint(model: ResUNet, path: str | os.PathLike, meta: Mapping
     """Write ``model`` in the project's pretrained-2D format (see the module docstring)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    m = {"out_dim": model.out_dim, "decoder_channels": list(model.decoder_channels), "normalize": model.normalize}
+    m = {"out_dim": model.out_dim, "decoder_channels": list(model.decoder_channels), "normalize": model.normalize,
+         "output_scale": model.output_scale}
     m.update(dict(meta or {}))
     ckpt = {"format": PRI3D_FORMAT, "version": 1, "arch": model.arch,
             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": m}
@@ -337,7 +351,8 @@ def build_encoder(cfg: Any, out_dim: int | None = None) -> ResUNet:
         raise ConfigError("encoder2d.arch", arch, " | ".join(ARCHS))
     width = int(out_dim if out_dim is not None else _get(cfg, "out_dim", 32))
     dec = _get(cfg, "decoder_channels", None) or (256, 128, 64, 64, 32)
-    model = ResUNet(arch, width, decoder_channels=list(dec), normalize=bool(_get(cfg, "normalize", True)))
+    model = ResUNet(arch, width, decoder_channels=list(dec), normalize=bool(_get(cfg, "normalize", True)),
+                    output_scale=str(_get(cfg, "output_scale", "full") or "full"))
     weights = _get(cfg, "weights", None)
     if name in ("imagenet", "pri3d") and not weights:
         raise ConfigError("encoder2d.weights", weights,
