@@ -350,14 +350,14 @@ tracker.finish(tracker.start("r", {}))
 
 def test_new_sqlite_store_opened_by_several_processes_at_once(tmp_path):
     uri = f"sqlite:///{tmp_path}/new.db"
-    start = time.time() + 6.0  # after every interpreter has imported mlflow
+    start = time.time() + 6.0  # after both interpreters have imported mlflow
     procs = [subprocess.Popen([sys.executable, "-c", _OPEN_STORE, uri, str(start)], cwd=REPO,
-                              stderr=subprocess.PIPE, text=True) for _ in range(3)]
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
     errs = [p.communicate(timeout=180)[1] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(e[-1500:] for e in errs)
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-1500:] for e in errs)
     from test_run_support import tracked_runs
 
-    assert [r.info.status for r in tracked_runs(uri, "race")] == ["FINISHED"] * 3
+    assert [r.info.status for r in tracked_runs(uri, "race")] == ["FINISHED"] * 2
 
 
 def test_command_line_sweep_values_are_checked_before_the_first_job(tmp_path, monkeypatch, capsys):
