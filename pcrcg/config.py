@@ -31,7 +31,7 @@ from pcrcg.vision.matching import LEARNED_METHODS, METHODS as MATCHER_METHODS, P
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
-METHODS = ("learned", "fpfh", "icp", "color_icp", "sift_dlt")
+METHODS = ("learned", "fpfh", "icp", "color_icp", "sift_dlt", "sift_lifted")
 CLASSICAL_METHODS = METHODS[1:]
 ICP_METHODS = ("icp", "color_icp")
 VIEWS = (1, 2, 3)

@@ -2,7 +2,7 @@
 
 * ``mode=score benchmark_dir=DIR estimate_dir=DIR``: score ``<estimate_dir>/<scene>/est.log``
   against ``<benchmark_dir>/<scene>/gt.log|gt.info`` (a missing estimate is a failure).
-* ``mode=pair method=fpfh|icp|color_icp|sift_dlt source=FILE target=FILE``: register one pair;
+* ``mode=pair method=fpfh|icp|color_icp|sift_dlt|sift_lifted source=FILE target=FILE``: register one pair;
   ``method=learned checkpoint=FILE``: with a trained model (Predator, or PCR-CG with the
   fragments' RGB-D views in ``source_views``/``target_views``), in eval mode.
 * ``mode=benchmark method=... data.root=DIR``: a classical method over the test benchmarks of a
@@ -233,12 +233,12 @@ def run_pair(cfg: DictConfig) -> dict[str, Any]:
     src_views = tgt_views = []
     warnings: list[str] = []
     flags: dict[str, Any] = {}
-    if method == "sift_dlt":
+    if method in ("sift_dlt", "sift_lifted"):
         src_views = _load_views(list(cfg.source_views or []), cfg.intrinsics)
         tgt_views = _load_views(list(cfg.target_views or []), cfg.intrinsics)
         if not src_views or not tgt_views:
             raise ConfigError("source_views/target_views", [list(cfg.source_views), list(cfg.target_views)],
-                              "frame prefixes .../frame-XXXXXX of both fragments (sift_dlt uses images)")
+                              f"frame prefixes .../frame-XXXXXX of both fragments ({method} uses images)")
     else:
         sp, tp, (src, src_col), (tgt, tgt_col), offset = _pair_clouds(cfg, warnings, flags)
         if method == "color_icp":

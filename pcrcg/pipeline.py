@@ -162,7 +162,8 @@ def method_label(data: Mapping[str, Any]) -> str:
     method = data.get("method", "learned")
     if method == "learned":
         return "PCR-CG" if color_enabled(data) else "Predator"
-    return {"fpfh": "FPFH", "icp": "ICP", "color_icp": "ColorICP", "sift_dlt": "SIFT-DLT"}.get(method, method)
+    return {"fpfh": "FPFH", "icp": "ICP", "color_icp": "ColorICP", "sift_dlt": "SIFT-DLT",
+            "sift_lifted": "SIFT-lifted"}.get(method, method)
 
 
 def resolve_device(requested: str | None) -> str:

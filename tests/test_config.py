@@ -50,7 +50,7 @@ def test_defaults_compose_and_validate(conf):
         (["views=0"], "views", "1, 2, 3"),
         (["window_size=0"], "window_size", "odd integer"),
         (["window_size=4"], "window_size", "odd integer"),
-        (["method=superglue"], "method", "learned, fpfh, icp, color_icp, sift_dlt"),
+        (["method=superglue"], "method", "learned, fpfh, icp, color_icp, sift_dlt, sift_lifted"),
         (["seed=-1"], "seed", ">= 0"),
         (["icp_init=learned"], "icp_init", "icp, color_icp"),
         (["experiment_name=a/b"], "experiment_name", "without '/'"),

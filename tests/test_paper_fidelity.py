@@ -412,3 +412,93 @@ def test_the_paper_profiles_2d_net_is_the_official_res50_unet():
     # the small profiles keep their CPU-sized net
     small = load_run_config(["profile=cpu"]).encoder2d
     assert (small.arch, small.out_dim, small.normalize, small.output_scale) == ("resnet18", 32, True, "full")
+
+
+# --------------------------------------------------------------------------- item 10: SIFT-DLT from the images
+
+
+def _corner_view(pose, planes, H=120, W=160):
+    """A camera (pose camera-to-fragment) in a room corner: the nearest of ``planes`` (n.p = d, fragment
+    frame) in front of each pixel gives its depth (a non-planar scene, as an essential matrix needs)."""
+    from pcrcg.data.dataset import View
+
+    K = np.array([[150.0, 0, W / 2 - 0.5], [0, 150.0, H / 2 - 0.5], [0, 0, 1]])
+    R, t = pose[:3, :3], pose[:3, 3]
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    z = np.full((H, W), np.inf)
+    for n, d in planes:
+        n_c, d_c = R.T @ n, d - n @ t
+        zi = d_c / (rays @ n_c)
+        z = np.where((zi > 0.1) & (zi < z), zi, z)
+    depth = np.where(np.isfinite(z) & (z < 6.0), z, 0.0).astype(np.float32)
+    return View(np.zeros((H, W, 3), np.uint8), depth, K, pose, 0, "corner.png")
+
+
+def test_sift_dlt_is_a_relative_pose_from_the_images_with_scale_from_depth():
+    from pcrcg.geometry import axis_angle_to_matrix, invert, make_transform, project, transform_points
+    from pcrcg.registration import BaselineConfig, lift_pixels, register_pair
+    from pcrcg.vision.matching import Matches
+
+    rng = np.random.default_rng(3)
+    # a room seen from inside: back wall 2.5 m ahead, side walls, the floor
+    planes = [(np.array([0.0, 0.0, 1.0]), 2.5), (np.array([1.0, 0.0, 0.0]), 0.8), (np.array([0.0, 1.0, 0.0]), 0.6),
+              (np.array([-1.0, 0.0, 0.0]), 0.9)]
+    T = make_transform(axis_angle_to_matrix([0.1, 1.0, 0.2], 0.15), [0.25, -0.05, 0.1])  # src frag -> tgt frag
+    src_pose = make_transform(axis_angle_to_matrix([0, 1, 0], 0.1), [0.1, 0.0, 0.0])
+    tgt_pose = make_transform(axis_angle_to_matrix([1, 0, 0], 0.05), [0.0, 0.05, 0.0])
+    src_view = _corner_view(src_pose, planes)
+    inv = invert(T)
+    tgt_planes = [(T[:3, :3] @ n, d + (T[:3, :3] @ n) @ T[:3, 3]) for n, d in planes]  # the scene, tgt frame
+    tgt_view = _corner_view(tgt_pose, tgt_planes)
+    assert np.allclose(inv @ T, np.eye(4))
+
+    def fake_match(img_a, img_b):
+        uv_a = rng.uniform([0, 10], [159, 119], size=(800, 2))
+        pa, ok = lift_pixels(uv_a, src_view)
+        uv_b, z = project(transform_points(invert(tgt_view.pose), transform_points(T, pa[ok])), tgt_view.intrinsics)
+        keep = (z > 0) & (uv_b[:, 0] >= 0) & (uv_b[:, 0] < 160) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] < 120)
+        ua, ub = uv_a[ok][keep], uv_b[keep] + rng.normal(scale=0.2, size=(int(keep.sum()), 2))
+        ub[: len(ub) // 4] = rng.uniform([0, 0], [159, 119], size=(len(ub) // 4, 2))  # outliers
+        return Matches(ua, ub, np.ones(len(ub), np.float32))
+
+    from pcrcg.registration.baselines import register_sift_dlt
+
+    res = register_sift_dlt([src_view], [tgt_view], BaselineConfig(), seed=0, matcher=fake_match)
+    r = np.degrees(np.arccos(np.clip((np.trace(res.transform[:3, :3].T @ T[:3, :3]) - 1) / 2, -1, 1)))
+    t = float(np.linalg.norm(res.transform[:3, 3] - T[:3, 3]))
+    assert r < 1.0 and t < 0.03, (r, t)  # the metric translation: its scale came from depth
+    assert res.info["n_inliers"] > 300 and res.info["view_pair"] == (0, 0)
+    # no image pose (too few matches): the identity, as the paper's 0.4% recall suggests happens often
+    few = register_sift_dlt([src_view], [tgt_view], BaselineConfig(), matcher=lambda a, b: Matches(
+        np.zeros((3, 2)), np.zeros((3, 2)), np.ones(3)))
+    assert np.array_equal(few.transform, np.eye(4))
+    # the former reading (3D RANSAC on depth-lifted matches) is kept under its own name
+    cfg = load_run_config(["profile=tiny", "method=sift_lifted"])
+    assert cfg.method == "sift_lifted" and "distance" in cfg.registration.sift_lifted
+    assert "threshold" in cfg.registration.sift_dlt and "distance" not in cfg.registration.sift_dlt
+    with pytest.raises(ValueError, match="views"):
+        register_pair("sift_dlt", None, None, src_views=[], tgt_views=[tgt_view])
+
+
+def test_sift_dlt_on_real_kinect_frames():
+    from conftest import shared_path
+
+    from pcrcg.data.dataset import View
+    from pcrcg.data.layout import read_color, read_depth, read_intrinsics, read_pose
+    from pcrcg.evaluation.metrics import rotation_error_deg
+    from pcrcg.geometry import invert
+    from pcrcg.registration import BaselineConfig, register_pair
+
+    frames = shared_path("data", "real-rgbd", "redkitchen-frames")
+    K = read_intrinsics(frames / "camera-intrinsics.txt")
+
+    def view(k):  # frame k as the first view of a fragment in its own camera frame
+        color = frames / f"frame-{k:06d}.color.png"
+        return View(read_color(color), read_depth(frames / f"frame-{k:06d}.depth.png"), K, np.eye(4), k, str(color))
+
+    T = invert(read_pose(frames / "frame-000040.pose.txt")) @ read_pose(frames / "frame-000008.pose.txt")
+    cfg = BaselineConfig.from_dict({"sift_dlt": {"matcher": {"method": "sift", "max_keypoints": 1500}}})
+    res = register_pair("sift_dlt", None, None, src_views=[view(8)], tgt_views=[view(40)], cfg=cfg, seed=0)
+    assert rotation_error_deg(res.transform[:3, :3], T[:3, :3]) < 3.0
+    assert np.linalg.norm(res.transform[:3, 3] - T[:3, 3]) < 0.05  # metric: the scale came from depth

@@ -60,7 +60,7 @@ def test_color_icp_refines_and_needs_colors(pair):
         register_pair("color_icp", pair.src_points, pair.tgt_points, init=init)
 
 
-# --------------------------------------------------------------------------- SIFT-DLT
+# --------------------------------------------------------------------------- SIFT: lifted (and SIFT-DLT, test_paper_fidelity)
 
 
 def _plane_view(pose_cam_to_frag: np.ndarray, plane=(np.array([0.2, 0.1, 1.0]), 2.0), H=120, W=160) -> View:
@@ -90,7 +90,7 @@ def test_lift_pixels_back_projects_through_the_pose():
     assert np.allclose(z, v.depth[uv[ok, 1].astype(int), uv[ok, 0].astype(int)], atol=1e-6)
 
 
-def test_sift_dlt_with_a_monkeypatched_matcher(monkeypatch):
+def test_sift_lifted_with_a_monkeypatched_matcher(monkeypatch):
     """Matches generated from a known relative pose (plus outliers) through the matcher's API."""
     from pcrcg.vision import matching as vm
 
@@ -112,16 +112,16 @@ def test_sift_dlt_with_a_monkeypatched_matcher(monkeypatch):
         return vm.Matches(uv_a[ok], uv_b, np.ones(len(uv_b), np.float32))
 
     monkeypatch.setattr(vm, "match_images", fake_match)
-    res = register_pair("sift_dlt", None, None, src_views=[src_view], tgt_views=[tgt_view], seed=0)
+    res = register_pair("sift_lifted", None, None, src_views=[src_view], tgt_views=[tgt_view], seed=0)
     r, t = _err(res.transform, T)
     # depth is read at the nearest pixel of a slanted plane: a few mm of lifting noise
     assert r < 1.0 and t < 0.03
     assert res.info["n_correspondences"] > 100
     with pytest.raises(ValueError, match="views"):
-        register_pair("sift_dlt", None, None, src_views=[], tgt_views=[tgt_view])
+        register_pair("sift_lifted", None, None, src_views=[], tgt_views=[tgt_view])
 
 
-def test_sift_dlt_on_real_kinect_frames():
+def test_sift_lifted_on_real_kinect_frames():
     """Real SIFT matches (pcrcg.vision.matching) between two real RGB-D frames; truth from poses."""
     if not FRAMES.is_dir():
         pytest.skip(f"{FRAMES} is not available")
@@ -139,7 +139,7 @@ def test_sift_dlt_on_real_kinect_frames():
     src, tgt = view(8, 8), view(40, 40)
     Pa, Pb = read_pose(FRAMES / "frame-000008.pose.txt"), read_pose(FRAMES / "frame-000040.pose.txt")
     T = invert(Pb) @ Pa  # A -> B
-    cfg = BaselineConfig.from_dict({"sift_dlt": {"matcher": {"method": "sift", "max_keypoints": 1500}}})
-    res = register_pair("sift_dlt", None, None, src_views=[src], tgt_views=[tgt], cfg=cfg, seed=0)
+    cfg = BaselineConfig.from_dict({"sift_lifted": {"matcher": {"method": "sift", "max_keypoints": 1500}}})
+    res = register_pair("sift_lifted", None, None, src_views=[src], tgt_views=[tgt], cfg=cfg, seed=0)
     r, t = _err(res.transform, T)
     assert r < 2.0 and t < 0.05

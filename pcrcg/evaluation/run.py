@@ -1,7 +1,7 @@
 """Running a method over the test benchmarks of a data set in the 3DMatch layout.
 
 * :func:`run_classical` registers every pair of one benchmark with ``fpfh | icp | color_icp |
-  sift_dlt``, writes ``<out_dir>/<scene>/est.log`` and scores it;
+  sift_dlt | sift_lifted``, writes ``<out_dir>/<scene>/est.log`` and scores it;
 * :func:`evaluate_learned` evaluates a trained checkpoint on one benchmark at every N;
 * :func:`evaluate` is the pipeline's evaluation stage (``stages.evaluate`` of ``conf/run.yaml``
   calls it through ``pcrcg.pipeline.evaluate_method``): the learned model at every N, or a
@@ -41,7 +41,7 @@ from pcrcg.evaluation.metrics import (
 )
 from pcrcg.evaluation.model import evaluate_model_outputs, subset
 from pcrcg.evaluation.pairs import pair_artifacts
-from pcrcg.registration.baselines import METHODS as CLASSICAL, BaselineConfig, register_pair
+from pcrcg.registration.baselines import METHODS as CLASSICAL, SIFT_METHODS, BaselineConfig, register_pair
 from pcrcg.registration.pipeline import RegistrationConfig
 
 log = logging.getLogger(__name__)
@@ -167,7 +167,7 @@ def run_classical(
     th = {**thresholds_from({}), **dict(thresholds or {})}
     layout = Layout(root)
     gt = gt if gt is not None else load_benchmark(layout.benchmark_dir(benchmark))
-    ds = PairDataset(root, benchmark, n_views=n_views if method == "sift_dlt" else 0)
+    ds = PairDataset(root, benchmark, n_views=n_views if method in SIFT_METHODS else 0)
     keys = [(p.scene, p.i, p.j) for p in ds.pairs if p.scene in gt]
     if max_pairs is not None:
         keys = keys[: int(max_pairs)]
@@ -303,7 +303,7 @@ def evaluate(cfg: Any, *, data_root: str | os.PathLike, checkpoint: str | os.Pat
     Returns ``{"metrics": {"<benchmark>/<name>": value}, "artifacts": [(path, folder)],
     "protocol": {...}}``. ``method=learned``: ``<b>/rr_<N>``, ``fmr_<N>``, ``ir_<N>``,
     ``rre_<N>``, ``rte_<N>``, ``<b>/rre``, ``<b>/rte`` (at the largest N) and ``color_coverage``;
-    classical methods: ``<b>/rr``, ``<b>/rre``, ``<b>/rte`` (+ ``fmr``, ``ir`` for fpfh/sift_dlt).
+    classical methods: ``<b>/rr``, ``<b>/rre``, ``<b>/rte`` (+ ``fmr``, ``ir`` for fpfh and the SIFT methods).
     ``icp_init=learned`` starts ICP from the learned model's estimates at the largest N.
     """
     method = str(_select(cfg, "method", "learned"))

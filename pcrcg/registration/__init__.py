@@ -15,7 +15,7 @@ Public API
   :func:`ransac_feature_matching_open3d` Predator's Open3D call (KD-tree matching + RANSAC).
 * Baselines (:mod:`pcrcg.registration.baselines`): :func:`register_pair` ``(method, src_points,
   tgt_points, *, src_colors, tgt_colors, src_views, tgt_views, init, cfg=BaselineConfig(), seed)
-  -> BaselineResult(transform, ...)`` with ``method`` in ``fpfh | icp | color_icp | sift_dlt``.
+  -> BaselineResult(transform, ...)`` with ``method`` in ``fpfh | icp | color_icp | sift_dlt | sift_lifted``.
 
 Every transform maps the source (fragment j of a ``gt.log`` entry ``i j``) into the target (i).
 """
@@ -28,12 +28,14 @@ from pcrcg.registration.baselines import (
     FpfhConfig,
     IcpConfig,
     SiftDltConfig,
+    SiftLiftedConfig,
     lift_pixels,
     register_color_icp,
     register_fpfh,
     register_icp,
     register_pair,
     register_sift_dlt,
+    register_sift_lifted,
 )
 from pcrcg.registration.matching import match_descriptors
 from pcrcg.registration.pipeline import (
@@ -57,7 +59,8 @@ from pcrcg.registration.sampling import SAMPLING_MODES, sample_indices
 
 __all__ = [
     "METHODS", "BaselineConfig", "BaselineResult", "ColorIcpConfig", "FpfhConfig", "IcpConfig", "SiftDltConfig",
-    "lift_pixels", "register_color_icp", "register_fpfh", "register_icp", "register_pair", "register_sift_dlt",
+    "SiftLiftedConfig", "lift_pixels", "register_color_icp", "register_fpfh", "register_icp", "register_pair",
+    "register_sift_dlt", "register_sift_lifted",
     "match_descriptors", "DEFAULT_N_POINTS", "FeatureRegistration", "FragmentOutput", "RegistrationConfig",
     "pair_seed", "register_features", "RansacConfig", "RansacResult", "kabsch", "kabsch_numpy", "ransac",
     "ransac_feature_matching_open3d", "ransac_open3d", "SAMPLING_MODES", "sample_indices",
