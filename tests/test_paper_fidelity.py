@@ -502,3 +502,39 @@ def test_sift_dlt_on_real_kinect_frames():
     res = register_pair("sift_dlt", None, None, src_views=[view(8)], tgt_views=[view(40)], cfg=cfg, seed=0)
     assert rotation_error_deg(res.transform[:3, :3], T[:3, :3]) < 3.0
     assert np.linalg.norm(res.transform[:3, 3] - T[:3, 3]) < 0.05  # metric: the scale came from depth
+
+
+# --------------------------------------------------------------------------- the report names what differs
+
+
+def test_the_report_names_per_table_the_settings_that_differ_from_the_paper_and_its_code():
+    import pandas as pd
+
+    from pcrcg.report.fidelity import fidelity_lines
+    from pcrcg.report.render import to_markdown
+    from pcrcg.report.tables import fill_table, load_paper
+
+    base = {"run_id": "r1", "experiment": "backbone_2d", "status": "FINISHED", "start_time": pd.Timestamp(0),
+            "tags.profile": "cpu", "params.seed": "0", "params.method": "learned", "params.features.name": "deep",
+            "params.projection.name": "explicit", "params.encoder2d.name": "scratch", "params.encoder2d.arch": "resnet18",
+            "params.encoder2d.out_dim": "32", "params.encoder2d.normalize": "True", "params.matcher2d.method": "sift",
+            "params.projection.combine": "overwrite", "params.projection.unseen_value": "1.0",
+            "params.model.loss.log_scale": "16", "params.registration.fewer_points": "with_replacement",
+            "params.registration.ransac.max_validation": "1000", "params.encoder2d.training": "detached",
+            "metrics.3DLoMatch/rr_5000": 50.0}
+    runs = pd.DataFrame([base, {**base, "run_id": "r2", "params.encoder2d.training": "end_to_end",
+                                "params.registration.ransac.max_validation": "null"}])
+    text = " | ".join(fidelity_lines(runs))
+    assert "the 2D network detached (not trained) (1 runs); the 2D network trained end to end (1 runs)" in text
+    assert "RANSAC stops after 1000 validated hypotheses" in text and "Open3D >= 0.12's budget" in text
+    assert "profile cpu" in text and "the official code: profile official" in text
+    assert "2D matches from SIFT" in text and "SuperGlue" in text and "2D encoder resnet18" in text
+    # as the code but not the text: said so; as both (or as the code where the text says nothing): not listed
+    assert "the first that sees a point gives its feature (as the official code, the paper's text: several views: " \
+           "features averaged)" in text
+    assert "circle-loss" not in text and "small fragments" not in text and "points no view sees" not in text
+    # ... and the table says them under its cells
+    spec = _report_specs()["backbone_2d"]
+    table = fill_table(spec, runs, load_paper(), {"backbone_2d": "cpu"})
+    assert table.fidelity and "Settings of these runs that differ from the paper's text or its official code" in \
+        to_markdown(table)

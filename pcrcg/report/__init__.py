@@ -217,6 +217,12 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
     out += ["", "## Protocol (from the runs' logged settings)", ""]
     out += _protocol(runs)
     out.append("")
+    out += ["### Settings that differ from the paper's text or its official code, per table", "",
+            "Where the text and the code (Gardlin/PCR-CG) disagree, the published numbers came from the code.", ""]
+    for name, table in result.tables.items():
+        out.append(f"- {name}: " + ("; ".join(table.fidelity) if table.fidelity else "none found in its runs "
+                                     "(or no runs yet)"))
+    out.append("")
     for name, table in result.tables.items():
         out.append(to_markdown(table))
         for suffix in ("recall", "coverage"):

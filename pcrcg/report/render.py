@@ -183,6 +183,10 @@ def to_markdown(table: FilledTable) -> str:
     if table.protocol:
         out.append("Protocol of these runs: " + "; ".join(table.protocol))
         out.append("")
+    if table.fidelity:
+        out.append("Settings of these runs that differ from the paper's text or its official code: "
+                   + "; ".join(table.fidelity) + ".")
+        out.append("")
     if table.coverage:
         out.append("Color coverage (fraction of points that received a 2D feature, ours): "
                    + ", ".join(f"{k}: {m:.3f}" + (f" ± {s:.3f}" if n > 1 else "")

@@ -80,6 +80,7 @@ class FilledTable:
     coverage: dict[str, tuple[float, float, int]] = field(default_factory=dict)  # row text -> (mean, std, n)
     protocol: list[str] = field(default_factory=list)  # settings of the runs behind the cells
     orderings: list[Any] = field(default_factory=list)  # pcrcg.report.orderings.OrderingLine, one per tested ordering
+    fidelity: list[str] = field(default_factory=list)  # settings of the runs that differ from the paper's text or code
 
     def cell(self, row: Row, col: Column) -> Cell:
         for c in self.cells:
@@ -222,7 +223,10 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
                                       len(vals))
     used = {r.run_id for c in cells for r in c.runs}
     proto = protocol_summary(runs[runs["run_id"].isin(used)]) if used else []
-    return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto)
+    from pcrcg.report.fidelity import fidelity_lines
+
+    fidelity = fidelity_lines(runs[runs["run_id"].isin(used)]) if used else []
+    return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity)
 
 
 def _values(df: pd.DataFrame, col: str) -> list[str]:
