@@ -42,7 +42,9 @@ class SynthConfig:
     # a fragment spans what 50 frames at 30 fps of a real scan span (3DMatch's fragments), however
     # many frames a profile renders of it
     fragment_seconds: float = 50 / 30
-    walk_speed: float = 0.25  # m/s
+    walk_speed: float = 0.25  # m/s at most
+    turn_rate_deg: float = 20.0  # deg/s the view turns on average
+    inward_share: float = 0.5  # scans circling the central table (their fragments all overlap a lot)
     shadows: bool = True
 
 
@@ -121,7 +123,8 @@ def _render_attempt(layout: Layout, index: int, seed: int, cfg: SynthConfig, sen
     room = make_room(rng)
     n_frames = cfg.fragments_per_scene * cfg.frames_per_fragment
     dt = cfg.fragment_seconds / cfg.frames_per_fragment
-    path = ScanPath(room, rng, ScanConfig(walk_speed=cfg.walk_speed))
+    path = ScanPath(room, rng, ScanConfig(walk_speed=cfg.walk_speed, turn_rate_deg=cfg.turn_rate_deg,
+                                               inward_share=cfg.inward_share))
     times = np.arange(n_frames) * dt
     poses = path.pose(times)
     K = intrinsics_for(cfg.width, cfg.height)

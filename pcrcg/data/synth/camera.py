@@ -52,6 +52,7 @@ class ScanConfig:
     gaze_swing_deg: float = 15.0  # amplitude of left-right looks
     height: tuple[float, float] = (1.25, 1.65)
     tremor: float = 0.003  # m, hand shake
+    inward_share: float = 0.5  # share of scans that circle the central table, looking inwards
 
 
 class ScanPath:
@@ -68,7 +69,7 @@ class ScanPath:
         else:
             ix, iy = np.nonzero(walk)
             pts = (np.stack([ix, iy], 1) + 0.5) * cell
-        self.inward = bool(room.focus is not None and rng.random() < 0.5)
+        self.inward = bool(room.focus is not None and rng.random() < cfg.inward_share)
         self.center = np.asarray(room.focus, float) if self.inward else pts.mean(0)
         # the loop: per direction, a radius inside the free space (70-85% of its reach)
         ang = np.arctan2(pts[:, 1] - self.center[1], pts[:, 0] - self.center[0])
