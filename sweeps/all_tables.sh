@@ -9,8 +9,9 @@
 # Relaunching it runs only what is missing: a job whose config hash already has a FINISHED run
 # is skipped, a crashed training resumes from its last checkpoint. The order lets later tables
 # reuse trained models (same training config -> same checkpoint): main_results trains Predator and
-# PCR-CG; window_size 11, views 2, backbone scratch, projection deep/explicit and icp_init's
-# improved pose reuse PCR-CG's checkpoint.
+# PCR-CG (Pri3D weights, explicit, 2 views, 11x11, 2D net detached; the first run that needs the Pri3D
+# weights makes them); ransac_budget, window_size 11, views_explicit 2, backbone_2d's Pri3D/detached row
+# and icp_init's improved pose reuse PCR-CG's checkpoint (views is implicit: its own trainings).
 set -u
 PYTHON=${PYTHON:-python}
 PROFILE=${1:-cpu}
