@@ -64,17 +64,26 @@ def _validate_jobs(config: DictConfig, jobs: list[list[str]], dirs: tuple[Path, 
     from pcrcg.errors import ConfigError
 
     loader = GlobalHydra.instance().hydra.config_loader  # type: ignore[union-attr]
+    values: dict[str, set[str]] = {}
+    for job in jobs:
+        for o in job:
+            values.setdefault(o.split("=", 1)[0], set()).add(o)
+    swept = {k for k, v in values.items() if len(v) > 1}
+
+    def name(job: list[str]) -> str:  # what differs between the jobs (window_size=7), else everything
+        return " ".join(o for o in job if o.split("=", 1)[0] in swept) or " ".join(job) or "defaults"
+
     for job in jobs:
         try:
             cfg = loader.load_sweep_config(config, job)
         except Exception as e:  # noqa: BLE001 - Hydra's own composition errors (a key that does not exist)
-            raise ConfigError(" ".join(job), "(composition)", f"a valid override ({' '.join(str(e).split())})") from None
+            raise ConfigError(name(job), "(composition)", f"a valid override ({' '.join(str(e).split())})") from None
         choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if v is not None}
         body = OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"])
         try:
             validate_run_config(body, choices, dirs)
         except ConfigError as e:
-            e.args = (f"{e} (job: {' '.join(job) or 'defaults'})",)
+            e.args = (f"{e} (job {name(job)})",)
             raise
 
 
