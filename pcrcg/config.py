@@ -293,6 +293,10 @@ def check_overrides(overrides: Sequence[str], search_dirs: Sequence[Path] = (CON
 
     parsed = OverridesParser.create().parse_overrides(list(overrides))
     for ov in parsed:
+        if ov.is_hydra_override() and ov.is_sweep_override():  # Hydra: "Sweeping over Hydra's configuration ..."
+            text = str(ov.input_line).split("=", 1)[-1]
+            raise ConfigError(ov.key_or_group, text, f"one value; to set the sweeper's values, quote them: "
+                                                     f"{ov.key_or_group}='{text}'")
         if ov.is_delete() or ov.is_hydra_override():
             continue
         key = ov.key_or_group

@@ -89,7 +89,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     with one_line_errors("pcrcg.run"):
         if not any(a in ("--help", "-h", "--hydra-help", "--info", "-i", "--cfg", "-c") for a in args):
-            check_overrides([o for o in cli_overrides(args) if not o.startswith("hydra")], cli_search_dirs(args))
+            overrides = cli_overrides(args)
+            check_overrides([o for o in overrides if not o.startswith("hydra")], cli_search_dirs(args))
+            check_overrides([o for o in overrides if o.startswith("hydra.")], cli_search_dirs(args))
         _hydra_main()
 
 
