@@ -89,7 +89,7 @@ def test_bad_inputs_are_named_before_work(release_root, color_checkpoint, tmp_pa
         _evaluate([f"data.root={release_root}"])
     junk = tmp_path / "junk.ckpt"
     junk.write_bytes(b"not a checkpoint")
-    with pytest.raises(DataError, match="junk.ckpt: is not a checkpoint"):
+    with pytest.raises(DataError, match="junk.ckpt: refused by torch.load\\(weights_only=True\\): not a torch checkpoint"):
         _evaluate([f"checkpoint={junk}", f"data.root={release_root}", f"out_dir={tmp_path / 'x'}"])
     # a color model needs each fragment's views: a missing frame is named before any pair is evaluated
     broken = tmp_path / "broken"

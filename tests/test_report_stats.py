@@ -143,7 +143,10 @@ def test_compare_specs_name_rows_and_fail_clearly():
         "PCR-CG 7x7 − PCR-CG 3x3", "PCR-CG 11x11 − PCR-CG 7x7", "PCR-CG 17x17 − PCR-CG 11x11"]
     assert [c.text for c in specs["main_results"].compare][0] == "PCR-CG − Predator (geometry only)"
     assert "ICP: improved − original" in [c.text for c in specs["icp_init"].compare]
-    assert len(specs["projection"].compare) == 5 and not specs["rre_rte"].compare
+    proj = [c.text for c in specs["projection"].compare]
+    assert len(proj) == 7 and not specs["rre_rte"].compare  # explicit - implicit for each of the 7 lifted features
+    assert all(" − " in t and t.split(" − ")[0].split("/")[-1].startswith("explicit") for t in proj)
+    assert any("LightGlue matches" in t for t in proj)
     assert raw["stats"]["n_boot"] == 2000
     bad = {"t": {"rows": [{"method": "A", "where": {"x": 1}}], "columns": [{"benchmark": "3DMatch", "metric": "RR"}],
                  "compare": {"pairs": [["A", "B"]]}}}
