@@ -291,7 +291,15 @@ def check_overrides(overrides: Sequence[str], search_dirs: Sequence[Path] = (CON
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    from hydra.errors import OverrideParseException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except OverrideParseException as e:
+        bad = next((o for o in overrides if not _parses(o)), " ".join(overrides))
+        key, _, value = bad.partition("=")
+        raise ConfigError(key, value, "a value in Hydra's override grammar (quote one with brackets or commas: "
+                                      f"key='...'): {str(e).splitlines()[0]}") from None
     for ov in parsed:
         if ov.is_hydra_override() and ov.is_sweep_override():  # Hydra: "Sweeping over Hydra's configuration ..."
             text = str(ov.input_line).split("=", 1)[-1]
@@ -314,6 +322,17 @@ def check_overrides(overrides: Sequence[str], search_dirs: Sequence[Path] = (CON
         elif key in TOP_LEVEL_KEYS:
             for v in values:
                 check_top_level(key, v)
+
+
+def _parses(override: str) -> bool:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    try:
+        OverridesParser.create().parse_overrides([override])
+        return True
+    except OverrideParseException:
+        return False
 
 
 def check_sweep_params(params: Mapping[str, Any], search_dirs: Sequence[Path] = (CONF_DIR,)) -> None:

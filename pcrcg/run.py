@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 
 from pcrcg.cli import one_line_errors
 from pcrcg.config import CONF_DIR, check_overrides
+from pcrcg.errors import PcrcgError
 from pcrcg.pipeline import JobInfo, run_job
 
 
@@ -92,7 +93,32 @@ def main(argv: Sequence[str] | None = None) -> None:
             overrides = cli_overrides(args)
             check_overrides([o for o in overrides if not o.startswith("hydra")], cli_search_dirs(args))
             check_overrides([o for o in overrides if o.startswith("hydra.")], cli_search_dirs(args))
+            if not any(a in ("-m", "--multirun") for a in args):
+                check_composes(overrides, cli_search_dirs(args), args)
         _hydra_main()
+
+
+def check_composes(overrides: Sequence[str], dirs: Sequence[Path], args: Sequence[str]) -> None:
+    """Compose a single run's config once before Hydra does, so that an override Hydra cannot apply
+    (a key that does not exist, a value of the wrong shape) is one line with exit 2 instead of
+    Hydra's multi-line report with exit 1. Sweeps are composed job by job by the multirun callback."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if len(dirs) != 1 or any(a.startswith(("--config-name", "-cn")) for a in args):
+        return  # several config folders or another primary config: left to Hydra
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(Path(dirs[0]).resolve()), version_base="1.3"):
+            compose(config_name="run", overrides=[o for o in overrides if not o.startswith("hydra.")])
+    except (HydraException, OmegaConfBaseException) as e:
+        lines = [ln.strip() for ln in str(e).splitlines()
+                 if ln.strip() and not ln.strip().startswith(("full_key", "object_type", "provider=", "Config search"))]
+        raise PcrcgError(f"cannot compose the config: {'; '.join(lines[:6])}") from None
+    finally:
+        GlobalHydra.instance().clear()
 
 
 if __name__ == "__main__":

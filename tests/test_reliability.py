@@ -530,6 +530,8 @@ def _entry(module: str, args: list[str], cwd: Path, monkeypatch, capsys) -> tupl
     ("pcrcg.run", ["trainer.optim.name=rmsprop"], "trainer.optim.name='rmsprop'"),
     ("pcrcg.run", ["profile=tiny", "profile.train.max_steps=0"], "profile.train.max_steps=0"),
     ("pcrcg.run", ["+experiment=window_size", "hydra.sweeper.params.window_size=3,7"], "quote them"),
+    ("pcrcg.run", ["no_such_key=1"], "To append to your config use +no_such_key=1"),
+    ("pcrcg.run", ["model.voxel_size=[1,2"], "model.voxel_size='[1,2'"),
     ("pcrcg.prepare", ["profile=tiny", "profile.synth.width=abc"], "profile.synth.width='abc'"),
     ("pcrcg.prepare", ["profile=tiny", "seed=-1"], "seed=-1"),
     ("pcrcg.evaluate", ["profile=tiny", "mode=score", "benchmark_dir=/nowhere", "estimate_dir=/nowhere"], "/nowhere"),
