@@ -310,7 +310,10 @@ def test_sweep_interrupted_during_training(tiny_root, tmp_path):
             "trainer.progress_bar=false", f"hydra.sweep.dir={tmp_path / 'multirun'}", "-m"]
     steps = tmp_path / "training_step.txt"
     with open(tmp_path / "err1.txt", "w") as err:
-        p = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=err)
+        # SIGINT at its default in the child: an ignored SIGINT (left so by any earlier test of the
+        # session, or by the shell CI runs in) is inherited, and Python then keeps ignoring it
+        p = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=err,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             _wait_for(lambda: steps.is_file() and "0 1" in steps.read_text(), 240, "job 1's second step", p)
             p.send_signal(signal.SIGINT)
