@@ -59,14 +59,22 @@ class Wall:
 # ------------------------------------------------------------------ floor plans
 
 
+# (width range, depth range) in metres
+_ROOM_SIZES = {"corridor": ((2.2, 3.0), (6.0, 9.0)), "conference": ((5.5, 8.0), (4.5, 7.0)),
+               "room": ((4.0, 7.0), (3.6, 6.0))}
+_TABLE_SIZES = {"conference": ((2.0, 3.2), (1.0, 1.3)), "coffee": ((0.6, 1.1), (0.45, 0.7)),
+                "dining": ((0.9, 1.6), (0.7, 0.95))}
+
+
+def _uniform_wd(rng: np.random.Generator, ranges) -> tuple[float, float]:
+    """A width and a depth drawn uniformly from ``((w_lo, w_hi), (d_lo, d_hi))`` (width first)."""
+    (w0, w1), (d0, d1) = ranges
+    return rng.uniform(w0, w1), rng.uniform(d0, d1)
+
+
 def _floor_plan(rng: np.random.Generator, kind: str) -> tuple[list[np.ndarray], list[tuple[float, float, float, float]]]:
     """The plan as a counter-clockwise polygon (V, 2) and the rectangles (x0, y0, x1, y1) that tile it."""
-    if kind == "corridor":
-        W, D = rng.uniform(2.2, 3.0), rng.uniform(6.0, 9.0)
-    elif kind == "conference":
-        W, D = rng.uniform(5.5, 8.0), rng.uniform(4.5, 7.0)
-    else:
-        W, D = rng.uniform(4.0, 7.0), rng.uniform(3.6, 6.0)
+    W, D = _uniform_wd(rng, _ROOM_SIZES.get(kind, _ROOM_SIZES["room"]))
     shape = "box" if kind == "corridor" else str(rng.choice(["box", "L", "alcove"], p=[0.4, 0.35, 0.25]))
     if shape == "L":
         cw, cd = W * rng.uniform(0.3, 0.45), D * rng.uniform(0.3, 0.45)
@@ -288,12 +296,7 @@ def _place_interior(room: Room, rng, floor: Floor, rtype: str, tops: list) -> No
 
 def _place_one(room: Room, rng, floor: Floor, what: str, tops: list) -> None:
     if what in ("dining", "conference", "coffee"):
-        if what == "conference":
-            w, d = rng.uniform(2.0, 3.2), rng.uniform(1.0, 1.3)
-        elif what == "coffee":
-            w, d = rng.uniform(0.6, 1.1), rng.uniform(0.45, 0.7)
-        else:
-            w, d = rng.uniform(0.9, 1.6), rng.uniform(0.7, 0.95)
+        w, d = _uniform_wd(rng, _TABLE_SIZES[what])
         M = _random_spot(rng, floor, w + 1.0, d + 1.0, 0.1)
         if M is None:
             return
