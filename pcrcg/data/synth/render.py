@@ -131,6 +131,8 @@ class RoomRenderer:
         for t_id, idx in zip(ids, np.split(order, starts[1:])):  # one texture call per visible texture
             albedo[idx] = self.textures[t_id](su[idx], sv[idx])
 
+        lum = albedo @ np.array([0.3, 0.59, 0.11], f32)  # of the printed (sRGB) colour: dark_albedo's scale
+        albedo = albedo**f32(2.2)  # textures are specified as sRGB colours; light adds up linearly
         n = self.normals[panel].astype(f32)
         cos_view = np.einsum("ij,ij->i", n, d_world.astype(f32)) / np.linalg.norm(d_world, axis=1).astype(f32)
         n *= np.where(cos_view > 0, -1.0, 1.0).astype(f32)[:, None]  # face the camera
@@ -156,7 +158,6 @@ class RoomRenderer:
         linear[~valid] = 0.0
         valid &= ~sky  # no depth through glass
         clean = np.where(valid, z, 0.0).reshape(H, W).astype(np.float32)
-        lum = albedo @ np.array([0.3, 0.59, 0.11], f32)
         return Radiance(linear.reshape(H, W, 3), clean, np.abs(cos_view).reshape(H, W), valid.reshape(H, W),
                         lum.reshape(H, W))
 

@@ -424,7 +424,7 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
         lights.append([(ix[k] + 0.5) * CELL, (iy[k] + 0.5) * CELL, H - rng.uniform(0.1, 0.3)])
     room.lights = np.asarray(lights)
     room.light_power = rng.uniform(1.5, 4.0, size=n_lights) / n_lights
-    room.ambient = float(rng.uniform(0.2, 0.4))
+    room.ambient = float(rng.uniform(0.08, 0.2))
     room.cell = CELL
     room.walkable = floor.walkable(0.55)
     room.room_type = rtype

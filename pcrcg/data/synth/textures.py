@@ -106,7 +106,7 @@ class Texture:
             bend = value_noise(ru * 0.25, rv * 2.0, self.scale * 4, self.seed, octaves=2)
             ring = ((rv + 0.6 * self.scale * 4 * bend) / self.scale) % 1.0
             line = np.exp(-((ring - 0.5) ** 2) / 0.004)
-            fine = value_noise(ru * 0.1, rv * 8.0, self.scale, self.seed + 3, octaves=2)
+            fine = value_noise(ru * 0.1, rv * 3.0, self.scale, self.seed + 3, octaves=2)
             t = np.clip(0.55 * line + 0.45 * fine, 0, 1)[:, None]
             out = c0 * (1 - t) + c1 * t
             plank = self.params.get("plank", 0.0)
@@ -117,7 +117,7 @@ class Texture:
             s = self.scale * 0.05
             weave = 0.5 + 0.5 * np.sin(2 * np.pi * ru / s) * np.sin(2 * np.pi * rv / s)
             slow = value_noise(u, v, self.scale * 3, self.seed, octaves=3)
-            t = np.clip(0.25 * weave + 0.75 * slow, 0, 1)[:, None]
+            t = np.clip(0.08 * weave + 0.92 * slow, 0, 1)[:, None]  # a sub-pixel weave: faint
             out = c0 * (1 - t) + c1 * t
         elif fam == "tiles":  # square tiles with a per-tile shade and grout lines
             cu, cv = np.floor(ru / self.scale), np.floor(rv / self.scale)
@@ -135,8 +135,9 @@ class Texture:
             out = _sample_image(self.params["image"], u, v, self.params["extent"])
         else:
             raise ValueError(f"unknown texture family {fam!r}; allowed {FAMILIES}")
-        if self.grain > 0:  # per-centimetre-cell grain (no interpolation: cheap)
-            g = _hash01(np.floor(u * 100.0), np.floor(v * 100.0), self.seed + 97) - 0.5
+        if self.grain > 0:  # grain on 4 cm cells (no interpolation: cheap); finer cells alias at the
+            # cameras' ~1 cm pixel footprint and flicker from frame to frame (no real surface does)
+            g = _hash01(np.floor(u * 25.0), np.floor(v * 25.0), self.seed + 97) - 0.5
             out = out * (1.0 + self.grain * 2 * g[:, None])
         return np.clip(out, 0.0, 1.0).astype(np.float32)
 
