@@ -17,6 +17,16 @@ def _nearest(a: torch.Tensor, b: torch.Tensor, chunk: int) -> torch.Tensor:
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.long, device=a.device)
 
 
+def first_occurrences(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For row identifiers ids (N,): the positions (U,) of each distinct id's first occurrence, in
+    position order, and for every row the index (N,) into them of its id."""
+    _, first, inv = np.unique(np.asarray(ids).reshape(-1), return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inv.reshape(-1)]
+
+
 def match_descriptors(
     desc_src: np.ndarray | torch.Tensor,
     desc_tgt: np.ndarray | torch.Tensor,
@@ -24,17 +34,43 @@ def match_descriptors(
     device: str | torch.device | None = None,
     chunk: int = 4096,
     threads: int = 1,
+    src_ids: np.ndarray | None = None,
+    tgt_ids: np.ndarray | None = None,
 ) -> np.ndarray:
     """Putative correspondences (K, 2) int64 (source index, target index).
 
     desc_src (N, D), desc_tgt (M, D). Each source point is matched to its nearest target
     descriptor (K = N); with ``mutual`` only pairs that are each other's nearest neighbour are
     kept, in source order. ``threads``: torch CPU threads meanwhile (0 = torch's setting).
+    ``src_ids`` (N,) / ``tgt_ids`` (M,): optional row identifiers (equal ids mean equal rows, e.g.
+    the point indices of a sample drawn with replacement): each distinct row is then matched once,
+    with the same result (ties go to the first position, as without ids).
     """
     from pcrcg.registration.ransac import torch_threads
 
     with torch_threads(threads, device):
-        return _match(desc_src, desc_tgt, mutual, device, chunk)
+        if src_ids is None and tgt_ids is None:
+            return _match(desc_src, desc_tgt, mutual, device, chunk)
+        return _match_unique(desc_src, desc_tgt, mutual, device, chunk, src_ids, tgt_ids)
+
+
+def _match_unique(desc_src, desc_tgt, mutual, device, chunk, src_ids, tgt_ids) -> np.ndarray:
+    n, m = len(desc_src), len(desc_tgt)
+    pa, ra = first_occurrences(np.arange(n) if src_ids is None else src_ids)
+    pb, rb = first_occurrences(np.arange(m) if tgt_ids is None else tgt_ids)
+    if len(ra) != n or len(rb) != m:
+        raise ValueError(f"src_ids / tgt_ids must have one id per row ({n}, {m})")
+    sub = _match(np.asarray(desc_src)[pa], np.asarray(desc_tgt)[pb], False, device, chunk)
+    if len(sub) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    ab_u = sub[:, 1]  # per distinct source row, its distinct target row
+    src = np.arange(n)
+    ab = pb[ab_u[ra]]  # positions in the target list (first occurrence: argmin's tie rule)
+    if mutual:
+        ba_u = _match(np.asarray(desc_tgt)[pb], np.asarray(desc_src)[pa], False, device, chunk)[:, 1]
+        keep = pa[ba_u[ab_u[ra]]] == src
+        src, ab = src[keep], ab[keep]
+    return np.stack([src, ab], 1).astype(np.int64)
 
 
 def _match(desc_src, desc_tgt, mutual, device, chunk) -> np.ndarray:

@@ -148,9 +148,10 @@ def _register_features(src, tgt, n_points, cfg, seed) -> FeatureRegistration:
     src_idx = sample_indices(src.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
     tgt_idx = sample_indices(tgt.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
     sp, tp = src.points[src_idx], tgt.points[tgt_idx]
-    corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=cfg.mutual, device=cfg.device)
+    ids = {"src_ids": src_idx, "tgt_ids": tgt_idx}  # a sample with replacement: each point matched once
+    corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=cfg.mutual, device=cfg.device, **ids)
     if cfg.mutual and len(corr) < 3 * cfg.ransac.ransac_n:
-        corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=False, device=cfg.device)
+        corr = match_descriptors(src.descriptors[src_idx], tgt.descriptors[tgt_idx], mutual=False, device=cfg.device, **ids)
     if cfg.backend == "torch":
         res = ransac(sp, tp, corr, cfg.ransac, seed=np.random.default_rng(s_ransac), device=cfg.device)
     else:

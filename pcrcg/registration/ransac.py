@@ -74,6 +74,9 @@ class RansacConfig:
     number of inlier correspondences (classic RANSAC, and Open3D's current master).
     max_validation: stop once this many hypotheses have passed both checkers and been scored
     (Open3D 0.10's ``RANSACConvergenceCriteria(max_iteration, max_validation)``); None: no cap.
+    prune: with ``score="overlap"`` on CPU, skip the rest of a hypothesis' overlap score once it can
+    no longer win, and score repeated points once (the same chosen hypothesis; ``False``: score
+    every point of every hypothesis, the reference).
     """
 
     distance: float = 0.05
@@ -88,6 +91,7 @@ class RansacConfig:
     threads: int = 1
     score: str = "overlap"
     max_validation: int | None = None
+    prune: bool = True
 
     def __post_init__(self) -> None:
         if self.distance <= 0:
@@ -226,7 +230,8 @@ class _OverlapScore:
     ``distance`` after the transform (KD-tree radius search), and their summed squared distances.
 
     CPU: one SciPy cKDTree query for a whole batch of hypotheses; other devices: chunked cdist.
-    Coordinates are the centred ones of :func:`ransac`.
+    Coordinates are the centred ones of :func:`ransac`. This is the reference implementation
+    (``RansacConfig(prune=False)``); :class:`_PrunedOverlapScore` gives the same choice faster.
     """
 
     def __init__(self, src: np.ndarray, tgt: np.ndarray, distance: float, dtype, device: torch.device):
@@ -242,7 +247,7 @@ class _OverlapScore:
             self.tree = None
             self.tgt = torch.as_tensor(tgt, dtype=dtype, device=device)
 
-    def __call__(self, R: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         H, N = R.shape[0], self.src.shape[0]
         q = self.src[None] @ R.transpose(1, 2) + t[:, None, :]  # (H, N, 3)
         if self.tree is not None:
@@ -254,6 +259,64 @@ class _OverlapScore:
         inl = d < self.distance
         d2 = torch.where(inl, d * d, torch.zeros_like(d))
         return inl.sum(1).to(self.device), d2.sum(1).to(self.device)
+
+
+class _PrunedOverlapScore(_OverlapScore):
+    """The same score with two exact shortcuts (CPU only; same counts for every hypothesis that can
+    still be chosen, so the same chosen hypothesis):
+
+    * repeated source points (N sampled *with replacement* from fewer points, Predator's script) are
+      queried once and counted with their multiplicity; repeated target points are dropped from the tree;
+    * bail-out: the source points are scored in chunks, in a fixed shuffled order, and a hypothesis
+      stops being scored once even all its unscored points could not bring it level with ``floor``
+      (the best count of earlier batches) or with another hypothesis' count so far. Such a
+      hypothesis' final count is below a count that is reached, so RANSAC could never choose it; its
+      returned count is -1.
+    """
+
+    CHUNKS = 8
+
+    def __init__(self, src: np.ndarray, tgt: np.ndarray, distance: float, dtype, device: torch.device):
+        from scipy.spatial import cKDTree
+
+        self.distance = distance
+        self.device = device
+        uniq, counts = np.unique(np.asarray(src), axis=0, return_counts=True)
+        order = np.random.default_rng(0).permutation(len(uniq))  # fixed: scoring order only
+        self.src = torch.as_tensor(uniq[order], dtype=dtype, device=device)
+        self.weight = counts[order].astype(np.int64)
+        self.total = int(self.weight.sum())
+        self.tree = cKDTree(np.unique(np.asarray(tgt), axis=0))
+        self.tgt = None
+        n = len(uniq)
+        self.bounds = np.unique(np.linspace(0, n, min(self.CHUNKS, max(n, 1)) + 1).astype(int))
+        self.after = self.total - np.concatenate([[0], np.cumsum(self.weight)])[self.bounds]  # weight left
+
+    def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        H = R.shape[0]
+        count = np.zeros(H, np.int64)
+        err = np.zeros(H, np.float64)
+        active = np.arange(H)
+        for c in range(len(self.bounds) - 1):
+            a, b = int(self.bounds[c]), int(self.bounds[c + 1])
+            sel = torch.as_tensor(active)
+            q = self.src[None, a:b] @ R[sel].transpose(1, 2) + t[sel][:, None, :]  # (h, b - a, 3)
+            d, _ = self.tree.query(q.reshape(-1, 3).double().numpy(), k=1, distance_upper_bound=self.distance)
+            d = d.reshape(len(active), b - a)
+            inl = d < self.distance
+            w = self.weight[a:b]
+            count[active] += (inl * w).sum(1)
+            err[active] += (np.where(inl, d * d, 0.0) * w).sum(1)
+            left = int(self.after[c + 1])
+            if left == 0:
+                break
+            level = max(int(floor), int(count[active].max()))
+            keep = count[active] + left >= level
+            count[active[~keep]] = -1
+            active = active[keep]
+            if len(active) == 0:
+                break
+        return torch.as_tensor(count), torch.as_tensor(err)
 
 
 def _edge_pairs(n: int) -> tuple[list[int], list[int]]:
@@ -303,8 +366,9 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     sim2 = cfg.edge_length**2
     overlap = None
     if cfg.score == "overlap":
-        overlap = _OverlapScore(np.asarray(src_points, dtype=np.float64) - cs,
-                                np.asarray(tgt_points, dtype=np.float64) - cq, cfg.distance, dtype, dev)
+        scorer = _PrunedOverlapScore if cfg.prune and dev.type == "cpu" else _OverlapScore
+        overlap = scorer(np.asarray(src_points, dtype=np.float64) - cs,
+                         np.asarray(tgt_points, dtype=np.float64) - cq, cfg.distance, dtype, dev)
 
     best_count, best_err2 = 0, math.inf
     best_R = best_t = None
@@ -341,9 +405,9 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
             limit = drawn
         n_checked += R.shape[0]
         count_c, err_c = _score(R, t, feats, thr2)
-        count, err2 = overlap(R, t) if overlap is not None else (count_c, err_c)
+        count, err2 = overlap(R, t, best_count) if overlap is not None else (count_c, err_c)
         cmax = int(count.max())
-        if cmax == 0:
+        if cmax <= 0:
             continue
         cand = count == cmax
         rmse2 = torch.where(cand, err2 / cmax, torch.full_like(err2, math.inf))

@@ -1,0 +1,120 @@
+"""The evaluation's shortcuts give what the reference path gives, bit for bit.
+
+* descriptor matching with row identifiers (each distinct sampled point matched once) vs plain;
+* RANSAC's pruned overlap score (``RansacConfig(prune=True)``: repeated points scored once,
+  hopeless hypotheses abandoned) vs scoring every point of every hypothesis;
+* the pipeline end to end (sampling with replacement, both RANSAC budgets, mutual or not).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcrcg.geometry import make_transform, random_rotation, transform_points
+from pcrcg.registration import FragmentOutput, RegistrationConfig, register_features
+from pcrcg.registration.matching import first_occurrences, match_descriptors
+from pcrcg.registration.ransac import RansacConfig, _OverlapScore, _PrunedOverlapScore, ransac
+from pcrcg.registration.synthetic import box_room
+
+
+def test_first_occurrences_maps_every_row_to_its_ids_first_position():
+    ids = np.array([7, 3, 7, 9, 3, 3, 1])
+    pos, row = first_occurrences(ids)
+    assert pos.tolist() == [0, 1, 3, 6]  # first 7, first 3, 9, 1: in position order
+    assert np.array_equal(ids[pos][row], ids)
+
+
+@pytest.mark.parametrize("mutual", [False, True])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matching_with_ids_equals_plain_matching(mutual, seed):
+    rng = np.random.default_rng(seed)
+    ds = rng.normal(size=(300, 16)).astype(np.float32)
+    dt = rng.normal(size=(250, 16)).astype(np.float32)
+    dt[10] = dt[200]  # two distinct target points with identical descriptors: the first position wins
+    ds[5] = ds[17]
+    si, ti = rng.integers(0, 300, 700), rng.integers(0, 250, 600)  # samples with replacement
+    a, b = ds[si], dt[ti]
+    plain = match_descriptors(a, b, mutual=mutual)
+    fast = match_descriptors(a, b, mutual=mutual, src_ids=si, tgt_ids=ti)
+    assert np.array_equal(plain, fast)
+    if mutual:  # repeated source rows: only a row's first copy can be its target's mutual neighbour
+        assert len(np.unique(si[plain[:, 0]])) == len(plain)
+
+
+def _clouds(seed: int, n: int = 1500, inlier_ratio: float = 0.3):
+    rng = np.random.default_rng(seed)
+    pts, _ = box_room(rng, 4 * n)
+    src = pts[rng.choice(len(pts), n, replace=False)]
+    T = make_transform(random_rotation(rng), rng.normal(size=3))
+    tgt = transform_points(T, src) + rng.normal(scale=0.01, size=src.shape)
+    perm = np.arange(n)
+    bad = rng.random(n) >= inlier_ratio
+    perm[bad] = rng.integers(0, n, int(bad.sum()))
+    return rng, src, tgt, np.stack([np.arange(n), perm], 1)
+
+
+def test_pruned_overlap_score_keeps_every_count_that_can_win():
+    rng, src, tgt, _ = _clouds(0)
+    s = src[rng.integers(0, len(src), 2500)]  # with repeats
+    R = torch.as_tensor(np.stack([random_rotation(rng, 0.3 if k % 2 else 0.02) for k in range(40)]), dtype=torch.float32)
+    t = torch.as_tensor(rng.normal(scale=0.05, size=(40, 3)), dtype=torch.float32)
+    R[7], t[7] = torch.eye(3), torch.zeros(3)  # the right one (source and target are one cloud)
+    tgt = s + np.random.default_rng(1).normal(scale=0.01, size=s.shape)
+    full = _OverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))
+    pruned = _PrunedOverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))
+    c_full, e_full = full(R, t)
+    for floor in (0, int(c_full.max()) // 2, int(c_full.max())):
+        c, e = pruned(R, t, floor)
+        kept = c >= 0
+        assert kept.any() and int(c.max()) == int(c_full.max())
+        assert torch.equal(c[kept], c_full[kept].to(c.dtype))
+        assert torch.allclose(e[kept], e_full[kept].to(e.dtype), rtol=1e-9)
+        # every abandoned hypothesis is below a count that is reached
+        assert bool((c_full[~kept] < max(floor, int(c_full.max()))).all())
+    assert int((pruned(R, t, 0)[0] < 0).sum()) > 0  # the shortcut does abandon hopeless ones
+
+
+@pytest.mark.parametrize("max_validation", [1000, None])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_ransac_pruned_equals_reference(seed, max_validation):
+    rng, src, tgt, corr = _clouds(seed, inlier_ratio=[0.5, 0.2, 0.08, 0.03][seed])
+    kw = dict(max_validation=max_validation, confidence=1.0 if max_validation else 0.999, max_iterations=20000)
+    ref = ransac(src, tgt, corr, RansacConfig(prune=False, **kw), seed=seed)
+    new = ransac(src, tgt, corr, RansacConfig(prune=True, **kw), seed=seed)
+    assert np.array_equal(ref.transform, new.transform)
+    assert (ref.iterations, ref.n_checked, ref.n_inliers) == (new.iterations, new.n_checked, new.n_inliers)
+
+
+def _outputs(rng, pts, noise):
+    d = np.cos(pts @ rng.normal(scale=12.0, size=(3, 24)) + 0.3) + rng.normal(scale=noise, size=(len(pts), 24))
+    return FragmentOutput(pts.astype(np.float32), d.astype(np.float32), rng.uniform(0.2, 1, len(pts)),
+                          rng.uniform(0.2, 1, len(pts)))
+
+
+@pytest.mark.parametrize("mutual", [False, True])
+@pytest.mark.parametrize("fewer_points", ["with_replacement", "whole"])
+def test_pipeline_results_do_not_change(mutual, fewer_points, monkeypatch):
+    import pcrcg.registration.pipeline as P
+
+    rng, src, tgt, _ = _clouds(5, n=900)
+    a = _outputs(np.random.default_rng(1), src, 0.3)
+    b = _outputs(np.random.default_rng(2), src, 0.3)  # same world points: descriptors agree
+    b = FragmentOutput(tgt.astype(np.float32), b.descriptors, b.overlap, b.matchability)
+    results = {}
+    for new in (False, True):
+        if not new:
+            plain = P.match_descriptors
+            monkeypatch.setattr(P, "match_descriptors",
+                                lambda x, y, src_ids=None, tgt_ids=None, **kw: plain(x, y, **kw))
+        else:
+            monkeypatch.undo()
+        cfg = RegistrationConfig(fewer_points=fewer_points, mutual=mutual,
+                                 ransac=RansacConfig(max_validation=1000, confidence=1.0, max_iterations=10000,
+                                                     prune=new))
+        results[new] = [register_features(a, b, n, cfg, seed=n) for n in (2000, 500)]
+    for r0, r1 in zip(results[False], results[True]):
+        assert np.array_equal(r0.transform, r1.transform)
+        assert np.array_equal(r0.correspondences, r1.correspondences)
+        assert (r0.ransac.iterations, r0.ransac.n_checked) == (r1.ransac.iterations, r1.ransac.n_checked)
