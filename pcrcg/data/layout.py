@@ -581,3 +581,13 @@ def _restricted_pth_unpickle(raw: bytes):
     if sys_info.get("little_endian") is False:
         raise ValueError("big-endian legacy torch.save files are not supported")
     return _restricted_unpickler(buf).load()
+
+
+def evenly(items: list, n: int | None) -> list:
+    """At most ``n`` items spread evenly over the list, in order (all for n None or 0): a subset of
+    test pairs that samples every scene and every part of a trajectory, unlike the first n."""
+    items = list(items)
+    if not n or n >= len(items):
+        return items
+    idx = np.unique(np.round(np.linspace(0, len(items) - 1, int(n))).astype(int))
+    return [items[k] for k in idx]

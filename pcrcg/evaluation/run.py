@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcrcg.cli import strict_json
-from pcrcg.data.layout import BENCHMARKS, Layout
+from pcrcg.data.layout import BENCHMARKS, Layout, evenly
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.evaluation.metrics import (
     FMR_THRESHOLD,
@@ -169,8 +169,8 @@ def run_classical(
     gt = gt if gt is not None else load_benchmark(layout.benchmark_dir(benchmark))
     ds = PairDataset(root, benchmark, n_views=n_views if method in SIFT_METHODS else 0)
     keys = [(p.scene, p.i, p.j) for p in ds.pairs if p.scene in gt]
-    if max_pairs is not None:
-        keys = keys[: int(max_pairs)]
+    if max_pairs is not None:  # spread over the benchmark (the first n would be one or two scenes)
+        keys = evenly(keys, int(max_pairs))
     index = {(p.scene, p.i, p.j): k for k, p in enumerate(ds.pairs)}
     estimates: dict[str, dict[tuple[int, int], np.ndarray]] = defaultdict(dict)
     irs: dict[str, list[float]] = defaultdict(list)

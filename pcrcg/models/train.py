@@ -43,6 +43,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, Logger
 from omegaconf import DictConfig, OmegaConf
 
+from pcrcg.data.layout import evenly
 from pcrcg.errors import ConfigError, DataError, one_line
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import FragmentOutput, PairOutput, PCRCGModule, build_lifter_from
@@ -394,8 +395,8 @@ def infer(model: str | Path | PCRCGModule, root: str | Path, split: str, device:
     dm = inference_datamodule(module, root)
     ds = dm.dataset(split)
     collate = dm.collate(train=False)
-    n = len(ds) if max_pairs is None else min(len(ds), max_pairs)
-    for k in tqdm(range(n), desc=f"infer {split}", disable=not progress):
+    chosen = list(range(len(ds))) if max_pairs is None else evenly(list(range(len(ds))), int(max_pairs))
+    for k in tqdm(chosen, desc=f"infer {split}", disable=not progress):
         batch = collate([ds[k]]).to(module.device)
         yield module.predict_pair(batch)
 

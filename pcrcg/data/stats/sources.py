@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pcrcg.data.layout import evenly  # noqa: F401  (re-exported for the stats package)
 from pcrcg.data.layout import (
     BENCHMARKS,
     FragmentInfo,
@@ -236,9 +237,3 @@ def read_rgb(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img[:, :, ::-1])
 
 
-def evenly(items: list, n: int | None) -> list:
-    """At most ``n`` items spread evenly over the list, in order (all for n None or 0)."""
-    if not n or n >= len(items):
-        return list(items)
-    idx = np.unique(np.round(np.linspace(0, len(items) - 1, int(n))).astype(int))
-    return [items[k] for k in idx]
