@@ -180,3 +180,13 @@ def test_cloud_shape_errors(tmp_path):
     with pytest.raises(DataError, match="unsupported"):
         (tmp_path / "x.xyz").write_text("1 2 3")
         read_cloud(tmp_path / "x.xyz")
+
+
+def test_evenly_spreads_a_subset_over_the_whole_list():
+    from pcrcg.data.layout import evenly
+
+    items = [("a", k) for k in range(6)] + [("b", k) for k in range(6)]
+    sub = evenly(items, 4)
+    assert len(sub) == 4 and sub[0] == ("a", 0) and sub[-1] == ("b", 5)
+    assert {s for s, _ in sub} == {"a", "b"}  # the first 4 would be scene a only
+    assert evenly(items, None) == items and evenly(items, 0) == items and evenly(items, 50) == items
