@@ -1,7 +1,7 @@
 """Speed and memory of the 3D network stage (prints figures; asserts nothing).
 
 ``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [pairs=4] [reps=3] [device=cpu]
-[threads=1] [root=null] [color=none|rgb|deep]``
+[threads=1] [root=null] [color=none|rgb|deep] [breakdown=false]``
 
 Per profile (model sizes from ``conf/profile/<p>.yaml`` + ``conf/model/predator.yaml``), on the
 generated data set ``data/synthmatch-<p>`` when it exists (else a synthetic box-room pair sized for
@@ -12,7 +12,8 @@ the profile's voxel, said so in the output):
   fragments' pyramids cached (``warm``, what training sees from the second epoch on);
 * training, seconds per pair: forward + losses + backward + optimiser step (the profile's);
 * inference, seconds per pair: forward without gradients and the per-fragment outputs;
-* peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU).
+* peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU);
+* ``breakdown=true``: the training step by stage (torch.profiler over the model's labelled scopes).
 
 Each profile runs in its own process so that the peak memory is its own.
 """
@@ -85,7 +86,7 @@ def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
 
 
 def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
-                  color: str = "none") -> dict[str, Any]:
+                  color: str = "none", breakdown: bool = False) -> dict[str, Any]:
     import torch
 
     from pcrcg.models.datamodule import AugmentConfig, PairCollate
@@ -148,6 +149,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
 
     module.train()
     s_train = _time(train_step, reps * len(batches))
+    stages = _breakdown(module, opt, batches, sync, reps) if breakdown else None
     module.eval()
     s_infer = _time(infer_step, reps * len(batches))
     n0 = [int(b.pyramid.lengths[0].sum()) for b in batches]
@@ -160,15 +162,43 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
         "train_s_per_pair": s_train, "infer_s_per_pair": s_infer, "optimizer": type(opt).__name__,
         "peak_mem_mb": peak, "peak_mem_kind": "cuda allocated" if device.startswith("cuda") else "process RSS",
-        "torch_threads": torch.get_num_threads(),
+        "torch_threads": torch.get_num_threads(), "stages_ms_per_step": stages,
     }
+
+
+def _breakdown(module, opt, batches, sync, reps: int) -> dict[str, float]:
+    """Milliseconds per training step in each labelled stage (``torch.profiler.record_function``
+    scopes in the model code: 2D encoder + lifting, KPConv kernel weights, neighbour gathers and
+    aggregation, attention, decoder, losses) and in the step's forward, backward and optimiser.
+    Stage times include their children; the KPConv rows are parts of the encoder and decoder rows."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    n = reps * len(batches)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for k in range(n):
+            b = batches[k % len(batches)]
+            with record_function("step.forward + losses"):
+                loss = module.training_step(b, 0)
+            if loss is None:
+                continue
+            with record_function("step.backward"):
+                opt.zero_grad()
+                loss.backward()
+            with record_function("step.optimizer"):
+                opt.step()
+            sync()
+    out = {}
+    for ev in prof.key_averages():
+        if ev.key.startswith(("pcrcg.", "step.")):
+            out[ev.key] = ev.cpu_time_total / 1e3 / n
+    return dict(sorted(out.items(), key=lambda kv: (not kv[0].startswith("step."), -kv[1])))
 
 
 def _parse(argv: list[str]) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     args = {"profiles": ["tiny", "cpu"], "pairs": 4, "reps": 3, "device": "cpu", "threads": 1, "root": None,
-            "color": "none", "child": False}
+            "color": "none", "child": False, "breakdown": False}
     for a in argv:
         k, _, v = a.partition("=")
         if k not in args:
@@ -189,6 +219,10 @@ def _print(row: dict[str, Any]) -> None:
     print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + {row['optimizer']})")
     print(f"  inference      {row['infer_s_per_pair']:.3f} s/pair")
     print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
+    if row.get("stages_ms_per_step"):
+        print("  training step by stage (torch.profiler, ms per step; stages include their children):")
+        for k, v in row["stages_ms_per_step"].items():
+            print(f"    {k:<48s} {v:9.1f}")
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -198,13 +232,13 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     torch.set_num_threads(int(args["threads"]))
     if args["child"]:
         row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
-                            args["root"], str(args["color"]))
+                            args["root"], str(args["color"]), bool(args["breakdown"]))
         print("@@" + json.dumps(row))
         return [row]
     rows = []
     for p in args["profiles"]:
         cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", "child=true"]
-        cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color")]
+        cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown")]
         if args["root"]:
             cmd.append(f"root={args['root']}")
         res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})

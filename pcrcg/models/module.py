@@ -28,6 +28,7 @@ from typing import Any, Mapping
 import lightning as L
 import numpy as np
 import torch
+from torch.profiler import record_function  # stage labels (pcrcg.benchmarks.model breakdown=true)
 
 from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
@@ -192,14 +193,16 @@ class PCRCGModule(L.LightningModule):
         return torch.cat([ones, feats], 1), float(lifted.color_coverage)
 
     def forward(self, batch: PairBatch) -> tuple[PredatorOutput, float]:
-        feats, coverage = self.input_features(batch)
+        with record_function("pcrcg.input_features (2D encoder + lifting)"):
+            feats, coverage = self.input_features(batch)
         return self.net(feats, batch.pyramid), coverage
 
     def compute_stats(self, batch: PairBatch, out: PredatorOutput) -> dict[str, torch.Tensor]:
         # in training, the matchability labels are only computed while their loss is on
         need = (not self.training) or (self.loss_cfg.w_matchability > 0 and bool(self.matchability_gate > 0))
-        return self.criterion(out.descriptors, out.overlap_logits, out.matchability_logits, batch.pyramid.points[0],
-                              batch.n_src, batch.transform, batch.corr, self.matchability_gate, matchability=need)
+        with record_function("pcrcg.losses"):
+            return self.criterion(out.descriptors, out.overlap_logits, out.matchability_logits, batch.pyramid.points[0],
+                                  batch.n_src, batch.transform, batch.corr, self.matchability_gate, matchability=need)
 
     # ------------------------------------------------------------------ steps
     def training_step(self, batch: PairBatch, batch_idx: int):

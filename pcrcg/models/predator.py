@@ -22,6 +22,7 @@ from typing import Any, Mapping, Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.profiler import record_function
 
 from pcrcg.errors import ConfigError
 from pcrcg.models.kpconv.blocks import (
@@ -242,12 +243,27 @@ class Predator(nn.Module):
             raise ValueError(f"features have {feats.shape[1]} channels, the model expects in_dim={self.cfg.in_dim}")
         x = feats
         skips = []
-        for i, block in enumerate(self.encoder):
-            if i in self.skip_before:
-                skips.append(x)
-            x = block(x, pyr)
+        with record_function("pcrcg.encoder (KPConv)"):
+            for i, block in enumerate(self.encoder):
+                if i in self.skip_before:
+                    skips.append(x)
+                x = block(x, pyr)
+        with record_function("pcrcg.attention (overlap attention)"):
+            x, ns = self._bottleneck(x, pyr)
+        with record_function("pcrcg.decoder"):
+            for block in self.decoder:
+                if isinstance(block, NearestUpsampleBlock):
+                    x = block(x, pyr)
+                    x = torch.cat([x, skips.pop()], dim=1)
+                else:
+                    x = block(x, pyr)
+        d = self.cfg.final_dim
+        desc = F.normalize(x[:, :d], p=2, dim=1)
+        ov_logit, m_logit = x[:, d], x[:, d + 1]
+        return PredatorOutput(desc, torch.sigmoid(ov_logit), torch.sigmoid(m_logit), ov_logit, m_logit)
 
-        # bottleneck: overlap attention between the two fragments' coarse points
+    def _bottleneck(self, x: torch.Tensor, pyr: TensorPyramid) -> tuple[torch.Tensor, int]:
+        """Overlap attention between the two fragments' coarse points -> (Nc, g + 2), n_src coarse."""
         ns, _ = pyr.split(-1)
         xyz = pyr.points[-1]
         x = self.bottle(x)
@@ -259,18 +275,7 @@ class Predator(nn.Module):
         temperature = torch.exp(self.epsilon) + 0.03
         s_src = torch.softmax(sim / temperature, dim=1) @ score_c[ns:]
         s_tgt = torch.softmax(sim.t() / temperature, dim=1) @ score_c[:ns]
-        x = torch.cat([score_c, torch.cat([s_src, s_tgt], 0), x], dim=1)
-
-        for block in self.decoder:
-            if isinstance(block, NearestUpsampleBlock):
-                x = block(x, pyr)
-                x = torch.cat([x, skips.pop()], dim=1)
-            else:
-                x = block(x, pyr)
-        d = self.cfg.final_dim
-        desc = F.normalize(x[:, :d], p=2, dim=1)
-        ov_logit, m_logit = x[:, d], x[:, d + 1]
-        return PredatorOutput(desc, torch.sigmoid(ov_logit), torch.sigmoid(m_logit), ov_logit, m_logit)
+        return torch.cat([score_c, torch.cat([s_src, s_tgt], 0), x], dim=1), ns
 
 
 def build_predator(cfg: Mapping[str, Any] | PredatorConfig, in_dim: int | None = None) -> Predator:

@@ -14,6 +14,7 @@ import math
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from pcrcg.models.kpconv.kernel_points import kernel_points as make_kernel_points
 
@@ -50,12 +51,15 @@ def kpconv(
     """
     n_sup = s_pts.shape[0]
     if influence is None:
-        influence = kernel_influence(q_pts, s_pts, neighbors, kernel, extent)
-    f_pad = torch.cat([feats, feats.new_zeros((1, feats.shape[1]))], 0)
-    neigh_f = f_pad[neighbors]  # (M, H, C)
-    weighted = torch.matmul(influence.transpose(1, 2).to(neigh_f.dtype), neigh_f)  # (M, K, C)
-    k, c, o = weights.shape
-    out = weighted.reshape(-1, k * c) @ weights.reshape(k * c, o)
+        with record_function("pcrcg.kpconv.kernel_weights"):
+            influence = kernel_influence(q_pts, s_pts, neighbors, kernel, extent)
+    with record_function("pcrcg.kpconv.neighbour_gather"):
+        f_pad = torch.cat([feats, feats.new_zeros((1, feats.shape[1]))], 0)
+        neigh_f = f_pad[neighbors]  # (M, H, C)
+    with record_function("pcrcg.kpconv.aggregate_and_weights"):
+        weighted = torch.matmul(influence.transpose(1, 2).to(neigh_f.dtype), neigh_f)  # (M, K, C)
+        k, c, o = weights.shape
+        out = weighted.reshape(-1, k * c) @ weights.reshape(k * c, o)
     if normalize:
         count = (neighbors < n_sup).sum(dim=1).clamp(min=1).to(out.dtype)
         out = out / count.unsqueeze(1)
@@ -93,7 +97,7 @@ class KPConv(nn.Module):
             key = (id(neighbors), id(q_pts), self._kernel_sig, round(self.extent, 9))
             infl = cache.get(key)
             if infl is None:
-                with torch.no_grad():
+                with torch.no_grad(), record_function("pcrcg.kpconv.kernel_weights"):
                     infl = kernel_influence(q_pts, s_pts, neighbors, self.kernel, self.extent)
                 cache[key] = infl
         return kpconv(q_pts, s_pts, neighbors, feats, self.kernel, self.weights, self.extent, self.normalize, infl)
