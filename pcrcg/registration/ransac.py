@@ -379,21 +379,12 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
         idx = torch.as_tensor(rng.integers(0, K, size=(b, n)), device=dev)
         drawn += b
         batch = min(2 * batch, cfg.max_batch)
-        # edge-length checker on squared lengths (it needs no transform, so it runs before the fit)
-        ok = torch.ones(b, dtype=torch.bool, device=dev)
-        for a, c in zip(ea, eb):
-            es = S[idx[:, a]] - S[idx[:, c]]
-            eq = Q[idx[:, a]] - Q[idx[:, c]]
-            ls, lq = (es * es).sum(1), (eq * eq).sum(1)
-            ok &= (ls >= lq * sim2) & (lq >= ls * sim2)
+        ok = _edge_length_ok(S, Q, idx, ea, eb, sim2)
         idx = idx[ok]
         pos = torch.nonzero(ok).reshape(-1)  # each surviving sample's place in the batch (draw order)
         if idx.shape[0] == 0:
             continue
-        ps, pq = S[idx], Q[idx]  # (h, n, 3)
-        R, t = kabsch(ps, pq)
-        res = (ps @ R.transpose(1, 2) + t[:, None, :] - pq).norm(dim=-1)
-        ok = (res <= cfg.distance).all(1)
+        R, t, ok = _fit_and_check_distance(S[idx], Q[idx], cfg.distance)
         if not bool(ok.any()):
             continue
         R, t = R[ok], t[ok]
@@ -427,20 +418,46 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     T = np.eye(4)
     T[:3, :3] = best_R
     T[:3, 3] = best_t + cq - best_R @ cs  # undo the centring
-    src_c = s64
-    for _ in range(cfg.refine):
-        res = np.linalg.norm(src_c @ T[:3, :3].T + T[:3, 3] - q64, axis=1)
-        inl = res < cfg.distance
-        if inl.sum() < n:
-            break
-        T_new = kabsch_numpy(src_c[inl], q64[inl])
-        res_new = np.linalg.norm(src_c @ T_new[:3, :3].T + T_new[:3, 3] - q64, axis=1)
-        if (res_new < cfg.distance).sum() < inl.sum():
-            break
-        T = T_new
-    out = _evaluate(T, src_c, q64, cfg.distance, drawn)
+    T = _refine(T, s64, q64, cfg.distance, cfg.refine, n)
+    out = _evaluate(T, s64, q64, cfg.distance, drawn)
     out.n_checked = n_checked
     return out
+
+
+def _edge_length_ok(S: torch.Tensor, Q: torch.Tensor, idx: torch.Tensor, ea, eb, sim2: float) -> torch.Tensor:
+    """Open3D's edge-length checker on samples idx (b, n) of centred correspondences S, Q (K, 3):
+    (b,) bool. On squared lengths; it needs no transform, so it runs before the fit."""
+    ok = torch.ones(idx.shape[0], dtype=torch.bool, device=idx.device)
+    for a, c in zip(ea, eb):
+        es = S[idx[:, a]] - S[idx[:, c]]
+        eq = Q[idx[:, a]] - Q[idx[:, c]]
+        ls, lq = (es * es).sum(1), (eq * eq).sum(1)
+        ok &= (ls >= lq * sim2) & (lq >= ls * sim2)
+    return ok
+
+
+def _fit_and_check_distance(ps: torch.Tensor, pq: torch.Tensor, distance: float):
+    """Kabsch fits of samples ps, pq (h, n, 3) and Open3D's distance checker: R (h, 3, 3), t (h, 3),
+    ok (h,) bool (every sampled pair within ``distance`` after the fit)."""
+    R, t = kabsch(ps, pq)
+    res = (ps @ R.transpose(1, 2) + t[:, None, :] - pq).norm(dim=-1)
+    return R, t, (res <= distance).all(1)
+
+
+def _refine(T: np.ndarray, src_c: np.ndarray, tgt_c: np.ndarray, distance: float, rounds: int, n: int) -> np.ndarray:
+    """Up to ``rounds`` least-squares refits of T (4, 4) on its inlier correspondences (K, 3), kept
+    only while they do not lose inliers (0 rounds: Open3D's behaviour, T as is)."""
+    for _ in range(rounds):
+        res = np.linalg.norm(src_c @ T[:3, :3].T + T[:3, 3] - tgt_c, axis=1)
+        inl = res < distance
+        if inl.sum() < n:
+            break
+        T_new = kabsch_numpy(src_c[inl], tgt_c[inl])
+        res_new = np.linalg.norm(src_c @ T_new[:3, :3].T + T_new[:3, 3] - tgt_c, axis=1)
+        if (res_new < distance).sum() < inl.sum():
+            break
+        T = T_new
+    return T
 
 
 # --------------------------------------------------------------------------- Open3D reference
