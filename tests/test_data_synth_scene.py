@@ -17,6 +17,7 @@ from pcrcg.geometry import look_at
 
 K = np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]])
 GREY = Texture("plain", np.array([[0.5, 0.5, 0.5]] * 3), grain=0.0)
+SKY = Texture("plain", np.array([[0.9, 0.9, 0.9]] * 3), grain=0.0)  # as bright as scene._sky's
 
 
 def _vertices(panels: list[Panel]) -> np.ndarray:
@@ -94,7 +95,7 @@ def _wall_room(tex: Texture) -> Room:
     X, Y, Z = np.eye(3)
     room = Room(size=np.array([4.0, 4.0, 3.0]))
     room.panels = [Panel(np.array([4.0, 0, 0]), Y * 4, Z * 3, tex, "wall"),
-                   Panel(np.array([3.9, 1.5, 1.0]), Y * 1.0, Z * 1.0, tex, "sky")]
+                   Panel(np.array([3.9, 1.5, 1.0]), Y * 1.0, Z * 1.0, SKY, "sky")]
     room.lights = np.array([[2.0, 2.0, 2.8]])
     room.light_power = np.array([2.0])
     return room
@@ -164,3 +165,15 @@ def test_sensor_jpeg_and_noise_change_the_image_but_not_its_level():
     assert abs(clean.mean() - real.mean()) < 20
     corner, centre = real[:8, :8].mean(), real[26:34, 36:44].mean()
     assert corner < centre  # vignetting
+
+
+def test_textures_are_srgb_colours_lit_in_linear_light():
+    room = _wall_room(GREY)
+    room.lights, room.light_power, room.ambient = np.zeros((0, 3)), np.zeros(0), 0.3
+    rad = RoomRenderer(room, SensorModel(dropout=0.0, edge_drop=0.0, noise_scale=0.0)).radiance(
+        look_at([2.0, 2.0, 1.5], [4.0, 0.5, 1.5]), K, 80, 60)
+    wall = rad.valid & (rad.linear.mean(2) < 1.0)
+    assert wall.sum() > 100
+    # a printed 50% grey reflects 0.5 ** 2.2 = 21.8% of the light (v4 lit the sRGB value: 50%)
+    assert np.allclose(rad.linear[wall], 0.3 * 0.5**2.2, rtol=1e-4)
+    assert np.allclose(rad.albedo[wall], 0.5, atol=1e-6)  # holes on dark surfaces: the printed value
