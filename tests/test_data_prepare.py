@@ -302,3 +302,18 @@ def test_threedmatch_official_benchmark_files_are_read(tmp_path):
     root = prepare_dataset(_release_cfg(tmp_path, frag_dir, bench), log=lambda m: None)
     assert read_manifest(root)["stats"]["pairs"] == {"3DMatch": 1623, "3DLoMatch": 1781}
     assert json.loads((root / "manifest.json").read_text())["stats"]["scenes"]["test"] == 8
+
+
+@pytest.mark.shared
+def test_real_frames_keep_the_color_camera_and_bad_values_are_named(tmp_path):
+    from pcrcg.data.layout import Layout, read_intrinsics
+    from pcrcg.errors import ConfigError
+
+    frames = _frames_copy(tmp_path, n=3)
+    with pytest.raises(ConfigError, match="data.color_intrinsics"):
+        prepare_dataset(_real_cfg(tmp_path, frames, "data.color_intrinsics=[525,0,320,240]", "data.frames_per_fragment=3"),
+                        log=lambda m: None)
+    root = prepare_dataset(_real_cfg(tmp_path, frames, "data.frames_per_fragment=3"), log=lambda m: None)
+    lay = Layout(root)
+    Kc = read_intrinsics(lay.color_intrinsics("7-scenes-redkitchen"))
+    assert Kc[0, 0] == 525.0 and read_intrinsics(lay.intrinsics("7-scenes-redkitchen"))[0, 0] == 585.0

@@ -35,7 +35,7 @@ from pcrcg.data.layout import (
 )
 from pcrcg.data.materialise import prepare_dataset, read_manifest
 from pcrcg.data.release import fusion_from
-from pcrcg.errors import DataError
+from pcrcg.errors import ConfigError, DataError
 from pcrcg.geometry import invert, make_transform
 
 RELEASE = SHARED / "data" / "real-3dmatch-fragments" / "7-scenes-redkitchen"
@@ -355,3 +355,44 @@ def test_the_shared_partial_release_builds_27_and_10_pairs(tmp_path):
         "7-scenes-redkitchen", "seq-01", 350, 399)
     views = load_views(lay, "7-scenes-redkitchen", 7, 3)
     assert [v.frame_id for v in views] == [350, 399, 374]
+
+
+# --------------------------------------------------------------------------- colour camera != depth camera
+
+
+def test_color_is_resampled_into_the_depth_camera():
+    from pcrcg.data.layout import color_to_depth_camera
+
+    Kd = np.array([[58.5, 0, 32], [0, 58.5, 24], [0, 0, 1]])
+    Kc = np.array([[52.5, 0, 32], [0, 52.5, 24], [0, 0, 1]])  # wider colour camera, same centre
+    u, v = np.meshgrid(np.arange(64), np.arange(48))
+    # a colour image of a ray-direction pattern: pixel (u, v) of the colour camera sees direction d
+    dx, dy = (u - 32) / 52.5, (v - 24) / 52.5
+    color = np.stack([np.clip(128 + 300 * dx, 0, 255), np.clip(128 + 300 * dy, 0, 255), np.full_like(dx, 50)], -1)
+    out = color_to_depth_camera(color.astype(np.uint8), Kc, Kd)
+    # depth pixel (u, v) sees direction ((u - 32) / 58.5, ...): the warped colour there must encode it
+    ex = np.clip(128 + 300 * (u - 32) / 58.5, 0, 255)
+    inner = (np.abs(u - 32) < 25) & (np.abs(v - 24) < 18)
+    assert np.abs(out[..., 0][inner].astype(float) - ex[inner]).max() <= 2.0
+    assert np.array_equal(color_to_depth_camera(color.astype(np.uint8), Kd, Kd), color.astype(np.uint8))
+
+
+def test_partial_release_records_an_unregistered_color_camera(tmp_path):
+    from pcrcg.data.layout import color_camera, read_intrinsics
+
+    fragments, rgbd, bench = _fake_release(tmp_path)
+    extra = ['+data.source.color_intrinsics.kitch=[45.0,45.0,32.0,24.0]']
+    root = prepare_dataset(_release_cfg(tmp_path / "out", fragments, rgbd, bench, *extra), log=lambda m: None)
+    lay = Layout(root)
+    Kc = color_camera(lay, "kitchen", read_intrinsics(lay.intrinsics("kitchen")))
+    assert Kc is not None and Kc[0, 0] == 45.0
+    assert not (rgbd / "kitchen" / "camera-intrinsics-color.txt").exists()  # the release's folder is untouched
+    s = PairDataset(root, "3DMatch", n_views=1)[0]
+    from pcrcg.data.layout import color_to_depth_camera, read_color
+
+    raw = read_color(s.src_views[0].color_path)
+    assert np.array_equal(s.src_views[0].color, color_to_depth_camera(raw, Kc, K))
+    assert not np.array_equal(s.src_views[0].color, raw)
+    with pytest.raises(ConfigError, match="data.source.color_intrinsics.kitch"):
+        prepare_dataset(_release_cfg(tmp_path / "out2", fragments, rgbd, bench,
+                                     '+data.source.color_intrinsics.kitch=[0,45.0,32.0,24.0]'), log=lambda m: None)

@@ -21,6 +21,8 @@ from pcrcg.data.layout import (
     Layout,
     PairRecord,
     frame_paths,
+    color_camera,
+    color_to_depth_camera,
     read_color,
     read_depth,
     read_intrinsics,
@@ -87,6 +89,7 @@ def fuse_sequence(
     Returns each fragment's points (fragment frame) and its first frame's camera-to-world pose.
     """
     K = read_intrinsics(layout.intrinsics(scene))
+    K_color = color_camera(layout, scene, K)
     out_dir = layout.fragments_dir(scene)
     out_dir.mkdir(parents=True, exist_ok=True)
     clouds, first_poses = [], []
@@ -95,7 +98,8 @@ def fuse_sequence(
         colors, depths, poses = [], [], []
         for fid in chunk:
             cpath, dpath, ppath = frame_paths(layout.frame_prefix(scene, seq, fid))
-            colors.append(read_color(cpath))
+            color = read_color(cpath)
+            colors.append(color if K_color is None else color_to_depth_camera(color, K_color, K))
             depths.append(read_depth(dpath))
             poses.append(read_pose(ppath))
         pts, cols = fuse_frames(colors, depths, poses, K, fusion)

@@ -24,6 +24,8 @@ from pcrcg.data.layout import (
     FragmentInfo,
     Layout,
     PairRecord,
+    color_camera,
+    color_to_depth_camera,
     frame_paths,
     read_color,
     read_cloud,
@@ -90,6 +92,7 @@ def load_views(layout: Layout, scene: str, frag: int, n_views: int) -> list[View
         return []
     info = read_fragment_info(layout.fragment_info(scene, frag))
     K = read_intrinsics(layout.intrinsics(scene))
+    K_color = color_camera(layout, scene, K)
     first_pose = read_pose(frame_paths(layout.frame_prefix(scene, info.seq, info.first_frame))[2])
     world_to_frag = invert(first_pose)
     views = []
@@ -100,6 +103,8 @@ def load_views(layout: Layout, scene: str, frag: int, n_views: int) -> list[View
         if color.shape[:2] != depth.shape:
             raise DataError(dpath, f"depth is {depth.shape[1]}x{depth.shape[0]} but color is "
                                    f"{color.shape[1]}x{color.shape[0]}")
+        if K_color is not None:
+            color = color_to_depth_camera(color, K_color, K)
         pose = world_to_frag @ read_pose(ppath)
         views.append(View(color, depth, K.copy(), pose, fid, str(cpath)))
     return views

@@ -6,6 +6,7 @@ Everything the project reads or writes about a data set goes through here::
     <root>/fragments/<scene>/cloud_bin_<i>.ply         points (m), fragment frame = camera of first frame
     <root>/fragments/<scene>/cloud_bin_<i>.info.txt    "<scene> <seq> <first_frame_id> <last_frame_id>"
     <root>/rgbd/<scene>/camera-intrinsics.txt          3x3
+    <root>/rgbd/<scene>/camera-intrinsics-color.txt    3x3, optional: colour not registered to depth
     <root>/rgbd/<scene>/<seq>/frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}
     <root>/benchmarks/{3DMatch,3DLoMatch}/<scene>/{gt.log,gt.info,gt_overlap.log}
     <root>/pairs/{train,val}.txt                       "scene i j overlap" + 4x4 (j into i), see write_pairs
@@ -98,6 +99,11 @@ class Layout:
 
     def intrinsics(self, scene: str) -> Path:
         return self.rgbd_dir(scene) / "camera-intrinsics.txt"
+
+    def color_intrinsics(self, scene: str) -> Path:
+        """Optional: the colour camera's own intrinsics, where colour is not registered to depth
+        (7-Scenes); absent: colour and depth share ``camera-intrinsics.txt``."""
+        return self.rgbd_dir(scene) / "camera-intrinsics-color.txt"
 
     def frame_prefix(self, scene: str, seq: str, frame: int) -> Path:
         return self.rgbd_dir(scene) / seq / f"frame-{frame:06d}"
@@ -223,6 +229,29 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
     if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
         raise DataError(path, "not a pinhole intrinsics matrix (fx, fy > 0, last row 0 0 1)")
     return K
+
+
+def color_camera(layout: "Layout", scene: str, K_depth: np.ndarray) -> np.ndarray | None:
+    """The colour camera's intrinsics (3, 3) of a scene when they differ from the depth camera's
+    ``K_depth``, else None."""
+    path = layout.color_intrinsics(scene)
+    if not path.is_file():
+        return None
+    K = read_intrinsics(path)
+    return None if np.allclose(K, K_depth) else K
+
+
+def color_to_depth_camera(color: np.ndarray, K_color: np.ndarray, K_depth: np.ndarray) -> np.ndarray:
+    """A colour image (H, W, 3) taken with intrinsics ``K_color`` resampled (bilinear) into the
+    depth camera's ``K_depth``, so that colour pixel (u, v) sees what depth pixel (u, v) sees. Both
+    matrices are for the image's own size; the two cameras' small baseline is ignored (7-Scenes
+    gives no extrinsics). Pixels outside the colour image are black."""
+    import cv2
+
+    H, W = color.shape[:2]
+    A = np.asarray(K_color, np.float64) @ np.linalg.inv(np.asarray(K_depth, np.float64))  # depth px -> colour px
+    return cv2.warpPerspective(np.ascontiguousarray(color), A, (W, H),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
 
 
 def read_fragment_info(path: str | os.PathLike) -> FragmentInfo:
