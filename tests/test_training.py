@@ -215,7 +215,8 @@ def _lifting(projection: str, features: str, **feat):
 
 @pytest.fixture(scope="module")
 def color_pair():
-    lifting_toy = pytest.importorskip("pcrcg.lifting.toyscene")
+    from pcrcg.lifting import toyscene as lifting_toy  # first-party: an ImportError must fail, not skip
+
     return lifting_toy.make_pair(0, width=80, height=60, frames=3, voxel=0.05)
 
 
@@ -245,7 +246,8 @@ def test_rgb_lifting_widens_only_the_input(color_pair):
 
 
 def test_deep_features_train_the_2d_encoder(color_pair):
-    pytest.importorskip("pcrcg.vision.encoders")
+    import pcrcg.vision.encoders  # noqa: F401  (first-party: an ImportError must fail, not skip)
+
     model = {**MODEL, "voxel_size": 0.1}
     lifting = {**_lifting("implicit", "deep", dim=8),
                "encoder2d": {"name": "scratch", "arch": "resnet18", "out_dim": 8, "weights": None,
