@@ -73,9 +73,17 @@ def test_flatten_params():
 
 
 def test_git_info_reports_the_checkout():
+    import subprocess
+
     sha, dirty = git_info()
-    assert sha == "unknown" or (len(sha) == 40 and all(c in "0123456789abcdef" for c in sha))
-    assert isinstance(dirty, bool)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent)
+    if head.returncode != 0:  # not a git checkout (an unpacked copy)
+        assert sha == "unknown"
+        return
+    assert sha == head.stdout.strip()
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout
+    assert dirty == bool(status.strip())
 
 
 @pytest.fixture(scope="module")

@@ -274,4 +274,6 @@ def test_ddp_spawn_on_two_cpu_processes(tmp_path, toy_root):
     ck = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
     assert ck["global_step"] == 2
     module = load_module(res["checkpoint"])
-    assert module.net is not None
+    saved = torch.load(res["checkpoint"], map_location="cpu", weights_only=True)["state_dict"]
+    for k, v in module.state_dict().items():  # the weights rank 0 wrote are the ones read back
+        assert torch.equal(v, saved[k]), k

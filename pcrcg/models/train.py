@@ -245,17 +245,23 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
             "neighbor_limits": list(datamodule.limits or ())}
 
 
+class _ExceptionRecorder(Callback):
+    """Keeps the exceptions Lightning saw (module level: ``ddp_spawn`` pickles the callbacks)."""
+
+    def __init__(self) -> None:
+        self.seen: list[BaseException] = []
+
+    def on_exception(self, trainer, pl_module, exception):  # noqa: ANN001
+        self.seen.append(exception)
+
+
 def _fit(trainer: L.Trainer, module: PCRCGModule, datamodule: PairDataModule, ckpt: str | None) -> None:
     """``trainer.fit`` that gives a Ctrl-C back as ``KeyboardInterrupt``: Lightning catches it, saves
     (``LastCheckpoint.on_exception``), ignores further SIGINTs and calls ``sys.exit(1)``, which would
     look like an ordinary failure to the caller and leave Ctrl-C ignored for the rest of the process."""
-    seen: list[BaseException] = []
-
-    class _Seen(Callback):
-        def on_exception(self, trainer, pl_module, exception):  # noqa: ANN001
-            seen.append(exception)
-
-    trainer.callbacks.append(_Seen())
+    recorder = _ExceptionRecorder()
+    seen = recorder.seen
+    trainer.callbacks.append(recorder)
     handler = signal.getsignal(signal.SIGINT)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
