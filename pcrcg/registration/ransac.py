@@ -395,8 +395,10 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
             drawn -= b - (int(pos[ok][keep - 1]) + 1)  # the draws up to and including it
             limit = drawn
         n_checked += R.shape[0]
-        count_c, err_c = _score(R, t, feats, thr2)
-        count, err2 = overlap(R, t, best_count) if overlap is not None else (count_c, err_c)
+        if overlap is not None:  # ranked by overlap; correspondence inliers only for the exit rule of a new best
+            count, err2 = overlap(R, t, best_count)
+        else:
+            count, err2 = _score(R, t, feats, thr2)
         cmax = int(count.max())
         if cmax <= 0:
             continue
@@ -407,7 +409,8 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
         if cmax > best_count or (cmax == best_count and r2 < best_err2):
             best_count, best_err2 = cmax, r2
             best_R, best_t = R[k].double().cpu().numpy(), t[k].double().cpu().numpy()
-            w = int(count_c[k]) / K  # Open3D's exit rule uses the correspondence inlier ratio
+            n_corr = int(count[k]) if overlap is None else int(_score(R[k : k + 1], t[k : k + 1], feats, thr2)[0][0])
+            w = n_corr / K  # Open3D's exit rule uses the correspondence inlier ratio
             if cfg.confidence < 1.0:
                 exit_itr = 0.0 if w >= 1.0 else log_fail / math.log(1.0 - w**n)
                 if exit_itr < cfg.max_iterations:
