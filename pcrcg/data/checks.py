@@ -35,7 +35,7 @@ from pcrcg.data.layout import (
     read_pairs,
     read_pose,
 )
-from pcrcg.data.pairs import OVERLAP_RADIUS, info_matrix, overlap_ratio, voxel_downsample
+from pcrcg.data.pairs import MAX_INFO_POINTS, OVERLAP_RADIUS, voxel_downsample
 from pcrcg.errors import DataError
 from pcrcg.geometry import invert, project
 
@@ -134,10 +134,11 @@ def check_dataset(root: str | Path, max_pairs: int = 200, overlap_voxel: float =
             pose_err = max(pose_err, float(np.abs(invert(Pi) @ Pj - r.transform).max()))
             n_pose += 1
         if ov is not None and np.isfinite(ov):
-            ov2 = overlap_ratio(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, OVERLAP_RADIUS)
+            ov2 = independent_overlap(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, OVERLAP_RADIUS)
             ov_err = max(ov_err, abs(ov2 - ov))
         if info is not None:
-            info2 = info_matrix(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, seed=r.i * 100003 + r.j)
+            info2 = independent_info(cloud(r.scene, r.i), cloud(r.scene, r.j), r.transform, OVERLAP_RADIUS,
+                                     seed=r.i * 100003 + r.j)
             info_err = max(info_err, float(np.abs(info2 - info).max() / max(1.0, np.abs(info).max())))
     rep.measures.update(pose_max_abs=pose_err, overlap_max_abs=ov_err, info_max_rel=info_err)
     _verdict(rep, n_pose and pose_err < 1e-6, f"pose/gt agreement over {n_pose} pairs (max |dT| {pose_err:.2e})")
@@ -162,6 +163,40 @@ def check_dataset(root: str | Path, max_pairs: int = 200, overlap_voxel: float =
         rep.measures["depth_median_abs_max"] = worst
         _verdict(rep, worst < 0.03, f"depth agreement over {len(med)} fragments (worst median |dz| {worst * 100:.2f} cm)")
     return rep
+
+
+def _o3d_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (N,) of each point of a (N, 3) to its nearest point of b (M, 3), by Open3D (not the
+    SciPy KD-tree the data code uses)."""
+    import open3d as o3d
+
+    pa = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(a, np.float64)))
+    pb = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(b, np.float64)))
+    return np.asarray(pa.compute_point_cloud_distance(pb))
+
+
+def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]
+
+
+def independent_overlap(pts_i: np.ndarray, pts_j: np.ndarray, T_ji: np.ndarray, radius: float) -> float:
+    """The overlap of ``gt_overlap.log`` (the larger share of either fragment within ``radius`` of the
+    other, j mapped into i), recomputed without the data code's functions."""
+    pj = _apply(T_ji, pts_j)
+    return float(max(np.mean(_o3d_distances(pj, pts_i) < radius), np.mean(_o3d_distances(pts_i, pj) < radius)))
+
+
+def independent_info(pts_i: np.ndarray, pts_j: np.ndarray, T_ji: np.ndarray, radius: float, seed: int,
+                     max_points: int = MAX_INFO_POINTS) -> np.ndarray:
+    """``gt.info`` recomputed with the evaluation's information matrix
+    (:func:`pcrcg.evaluation.metrics.information_matrix`) on the points of i within ``radius`` of the
+    aligned j (the same subsample of at most ``max_points``, drawn with ``seed``)."""
+    from pcrcg.evaluation.metrics import information_matrix
+
+    p = np.asarray(pts_i, np.float64)[_o3d_distances(pts_i, _apply(T_ji, pts_j)) < radius]
+    if len(p) > max_points:
+        p = p[np.random.default_rng(seed).choice(len(p), max_points, replace=False)]
+    return information_matrix(p)
 
 
 def depth_agreement(points: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
