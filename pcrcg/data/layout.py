@@ -231,6 +231,19 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
     return K
 
 
+def pinhole(values: Any, setting: str) -> np.ndarray:
+    """The 3x3 intrinsics of a config value ``[fx, fy, cx, cy]`` (pixels); a ConfigError naming
+    ``setting`` for anything else."""
+    from pcrcg.errors import ConfigError
+
+    ok = (isinstance(values, (list, tuple)) and len(values) == 4
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in values))
+    if not ok or float(values[0]) <= 0 or float(values[1]) <= 0:
+        raise ConfigError(setting, values, "[fx, fy, cx, cy] in pixels with fx, fy > 0")
+    fx, fy, cx, cy = (float(x) for x in values)
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
 def color_camera(layout: "Layout", scene: str, K_depth: np.ndarray) -> np.ndarray | None:
     """The colour camera's intrinsics (3, 3) of a scene when they differ from the depth camera's
     ``K_depth``, else None."""

@@ -24,7 +24,7 @@ import numpy as np
 
 from pcrcg.data.build import SceneResult, build_scene, check_frames
 from pcrcg.data.fusion import FusionConfig
-from pcrcg.data.layout import BENCHMARKS, Layout, frame_ids, frame_paths, write_matrix, write_pairs, write_split
+from pcrcg.data.layout import BENCHMARKS, Layout, frame_ids, frame_paths, pinhole, write_matrix, write_pairs, write_split
 from pcrcg.data.pairs import PairConfig
 from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
@@ -298,10 +298,8 @@ def _check_redkitchen_source(data_cfg) -> None:
         raise DataError(frames_dir, "frames folder (data.frames_dir) does not exist")
     if not (frames_dir / "camera-intrinsics.txt").is_file():
         raise DataError(frames_dir / "camera-intrinsics.txt", "intrinsics file is missing")
-    Kc = data_cfg.get("color_intrinsics")
-    if Kc is not None and not (isinstance(Kc, (list, tuple)) and len(Kc) == 4
-                               and all(isinstance(x, (int, float)) for x in Kc) and Kc[0] > 0 and Kc[1] > 0):
-        raise ConfigError("data.color_intrinsics", Kc, "[fx, fy, cx, cy] in pixels with fx, fy > 0, or null")
+    if data_cfg.get("color_intrinsics") is not None:
+        pinhole(data_cfg["color_intrinsics"], "data.color_intrinsics")
     _real_frame_ids(frames_dir)
 
 
@@ -316,9 +314,8 @@ def _prepare_redkitchen(tmp: Path, data_cfg, log) -> dict:
     dst = layout.rgbd_dir(scene) / seq
     dst.mkdir(parents=True)
     shutil.copy2(frames_dir / "camera-intrinsics.txt", layout.intrinsics(scene))
-    Kc = data_cfg.get("color_intrinsics")
-    if Kc is not None:  # colour not registered to depth (7-Scenes): views and fused colours resampled
-        write_matrix(layout.color_intrinsics(scene), np.array([[Kc[0], 0.0, Kc[2]], [0.0, Kc[1], Kc[3]], [0.0, 0.0, 1.0]]))
+    if data_cfg.get("color_intrinsics") is not None:  # colour not registered to depth (7-Scenes)
+        write_matrix(layout.color_intrinsics(scene), pinhole(data_cfg["color_intrinsics"], "data.color_intrinsics"))
     for fid in ids:
         for src in frame_paths(frames_dir / f"frame-{fid:06d}"):
             if not src.is_file():

@@ -44,6 +44,7 @@ from pcrcg.data.layout import (
     Layout,
     PairRecord,
     frame_paths,
+    pinhole,
     read_cloud,
     read_fragment_info,
     read_gt_info,
@@ -79,17 +80,14 @@ class ReleaseSource:
     fragments_dir: Path | None
     rgbd_dir: Path | None
     seq: str = "seq-01"
-    # scene-name prefix -> the colour camera's [fx, fy, cx, cy] (pixels of the frames) where colour is
-    # not registered to depth (data.source.color_intrinsics)
-    color_intrinsics: Mapping[str, tuple[float, float, float, float]] = dataclasses.field(default_factory=dict)
+    # scene-name prefix -> the colour camera's intrinsics (3, 3) where colour is not registered to
+    # depth (data.source.color_intrinsics)
+    color_intrinsics: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     def color_camera(self, scene: str) -> np.ndarray | None:
         """The colour camera's intrinsics (3, 3) for ``scene`` (the longest matching prefix), or None."""
         keys = sorted((k for k in self.color_intrinsics if scene.startswith(k)), key=len)
-        if not keys:
-            return None
-        fx, fy, cx, cy = (float(v) for v in self.color_intrinsics[keys[-1]])
-        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return self.color_intrinsics[keys[-1]] if keys else None
 
 
 @dataclass(frozen=True)
@@ -160,12 +158,9 @@ def source_from(data_cfg: Mapping[str, Any]) -> ReleaseSource:
     if rgbd is not None and not rgbd.is_dir():
         raise DataError(rgbd, "RGB-D folder (data.source.rgbd_dir) does not exist")
     seq = str(src.get("seq") or "seq-01")
-    color = dict(src.get("color_intrinsics") or {})
-    for prefix, v in color.items():
-        ok = isinstance(v, (list, tuple)) and len(v) == 4 and all(isinstance(x, (int, float)) for x in v)
-        if not ok or float(v[0]) <= 0 or float(v[1]) <= 0:
-            raise ConfigError(f"data.source.color_intrinsics.{prefix}", v, "[fx, fy, cx, cy] in pixels, fx, fy > 0")
-    return ReleaseSource(bdir, fdir, rgbd, seq, {str(k): tuple(float(x) for x in v) for k, v in color.items()})
+    color = {str(k): pinhole(v, f"data.source.color_intrinsics.{k}")
+             for k, v in dict(src.get("color_intrinsics") or {}).items()}
+    return ReleaseSource(bdir, fdir, rgbd, seq, color)
 
 
 def fusion_from(data_cfg: Mapping[str, Any]) -> FusionConfig:
@@ -307,10 +302,11 @@ def check_plan(layout: Layout, plan: ReleasePlan) -> None:
 # --------------------------------------------------------------------------- writing
 
 
-def _link_rgbd(src_scene: Path, dst: Path, K_color: np.ndarray | None = None) -> None:
+def _link_rgbd(src_scene: Path, layout: Layout, scene: str, K_color: np.ndarray | None = None) -> None:
     """The scene's frames in the layout: its intrinsics copied, its sequences linked (copied where
     the file system has no symlinks), and ``camera-intrinsics-color.txt`` when ``K_color`` is given
     (nothing is written into the release's own folder)."""
+    dst = layout.rgbd_dir(scene)
     dst.mkdir(parents=True, exist_ok=True)
     for item in sorted(src_scene.iterdir()):
         if item.is_dir():
@@ -321,7 +317,7 @@ def _link_rgbd(src_scene: Path, dst: Path, K_color: np.ndarray | None = None) ->
         elif item.is_file():
             shutil.copy2(item, dst / item.name)
     if K_color is not None:
-        write_matrix(Layout(dst.parent.parent).color_intrinsics(dst.name), K_color)
+        write_matrix(layout.color_intrinsics(scene), K_color)
 
 
 def _write_read_fragment(layout: Layout, fs: FragmentSource) -> int:
@@ -380,7 +376,7 @@ def prepare_release(tmp: Path, data_cfg: Mapping[str, Any], log: Log = print) ->
     for scene in scenes:
         layout.fragments_dir(scene).mkdir(parents=True, exist_ok=True)
         if src.rgbd_dir is not None and any(fs.frames for (s, _), fs in plan.fragments.items() if s == scene):
-            _link_rgbd(src.rgbd_dir / scene, layout.rgbd_dir(scene), src.color_camera(scene))
+            _link_rgbd(src.rgbd_dir / scene, layout, scene, src.color_camera(scene))
     check_plan(layout, plan)
 
     read = [fs for fs in plan.fragments.values() if not fs.fused]
