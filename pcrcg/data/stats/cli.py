@@ -125,9 +125,15 @@ def run(args: argparse.Namespace) -> dict:
             previews.append((src.name, preview_fragments(src, cfg.preview)))
     from dataclasses import asdict
 
+    from pcrcg.data.materialise import GENERATOR_VERSION
+    from pcrcg.tracking.git import git_info
+
+    sha, dirty = git_info()
     settings = {**asdict(cfg), "command": " ".join(["python -m pcrcg.data.stats", *sys.argv[1:]]),
-                "seconds": round(time.perf_counter() - t0, 1)}
-    notes = _notes(cfg)
+                "seconds": round(time.perf_counter() - t0, 1), "code_commit": sha, "code_dirty": dirty,
+                "data_code_version": GENERATOR_VERSION}
+    notes = _notes(cfg) + (f"Made by commit {sha}{' with uncommitted changes' if dirty else ''} "
+                           f"(data code version {GENERATOR_VERSION}).\n")
     md, js = write_outputs(columns, settings, args.out, notes)
     png = None
     if previews:
