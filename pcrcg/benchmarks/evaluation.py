@@ -1,0 +1,88 @@
+"""Evaluation speed, before and after the exact shortcuts, side by side (prints figures; asserts nothing).
+
+    python -m pcrcg.benchmarks.evaluation CHECKPOINT [--root data/synthmatch-cpu] [--pairs 10]
+        [--distance 0.12]
+
+Per N of the protocol, seconds per pair of registration (sampling, matching, RANSAC) on a trained
+model's outputs for ``--pairs`` pairs of each test benchmark, with the run's default budget (Open3D
+0.10's ``(50000, 1000)``) and with ``registration=early_exit``:
+
+* **before**: every sampled row matched (no ``src_ids``/``tgt_ids``) and ``RansacConfig(prune=False)``
+  (every point of every validated hypothesis scored);
+* **after**: the defaults (each distinct sampled point matched once; the pruned overlap score).
+
+It also says whether both gave the same transforms, correspondences and RANSAC counts on every pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+
+import numpy as np
+
+N_POINTS = (5000, 2500, 1000, 500, 250)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m pcrcg.benchmarks.evaluation", description=__doc__.split("\n")[0])
+    p.add_argument("checkpoint")
+    p.add_argument("--root", default="data/synthmatch-cpu")
+    p.add_argument("--pairs", type=int, default=10, help="pairs per benchmark (spread evenly)")
+    p.add_argument("--distance", type=float, default=0.12, help="RANSAC distance, m (the cpu profile's: 2x 6 cm)")
+    args = p.parse_args(argv)
+
+    import torch
+
+    import pcrcg.registration.pipeline as P
+    from pcrcg.evaluation.model import as_fragment
+    from pcrcg.models.predict import predict_benchmark
+    from pcrcg.registration.pipeline import RegistrationConfig, pair_seed, register_features
+    from pcrcg.registration.ransac import RansacConfig
+
+    torch.set_num_threads(1)
+    outs = []
+    t0 = time.perf_counter()
+    for b in ("3DMatch", "3DLoMatch"):
+        gen = predict_benchmark(None, args.root, args.checkpoint, b, progress=False, max_pairs=args.pairs)
+        outs += list(itertools.islice(gen, args.pairs))
+    print(f"inference (data + network): {(time.perf_counter() - t0) / len(outs):.3f} s/pair over {len(outs)} pairs")
+
+    plain = P.match_descriptors
+
+    def match_every_row(a, b, src_ids=None, tgt_ids=None, **kw):  # noqa: ANN001, ARG001
+        return plain(a, b, **kw)
+
+    for name, mv, conf in (("run default: Open3D 0.10 budget (50000, 1000)", 1000, 1.0),
+                           ("registration=early_exit", None, 0.999)):
+        seconds, results = {}, {}
+        for new in (False, True):
+            P.match_descriptors = plain if new else match_every_row
+            try:
+                cfg = RegistrationConfig(fewer_points="with_replacement", ransac=RansacConfig(
+                    distance=args.distance, max_validation=mv, confidence=conf, prune=new))
+                per_n, res = {}, []
+                for n in N_POINTS:
+                    t = time.perf_counter()
+                    for o in outs:
+                        r = register_features(as_fragment(o.src), as_fragment(o.tgt), n, cfg,
+                                              seed=pair_seed(0, o.scene, o.i, o.j, n))
+                        res.append((r.transform, r.correspondences, r.ransac.iterations, r.ransac.n_checked))
+                    per_n[n] = (time.perf_counter() - t) / len(outs)
+            finally:
+                P.match_descriptors = plain
+            seconds[new], results[new] = per_n, res
+        same = all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2:] == b[2:]
+                   for a, b in zip(results[False], results[True]))
+        print(f"\n{name}; identical results: {same}")
+        print("     N   before s/pair   after s/pair   speed-up")
+        for n in N_POINTS:
+            b0, b1 = seconds[False][n], seconds[True][n]
+            print(f"{n:6d} {b0:15.3f} {b1:14.3f} {b0 / b1:9.2f}x")
+        s0, s1 = sum(seconds[False].values()), sum(seconds[True].values())
+        print(f"  all {len(N_POINTS)} N: {s0:.3f} -> {s1:.3f} s/pair ({s0 / s1:.2f}x)")
+
+
+if __name__ == "__main__":
+    main()
