@@ -20,18 +20,6 @@ from omegaconf import OmegaConf
 from pcrcg.config import CONF_DIR
 from pcrcg.pipeline import EvalOutput, RunContext, TrainOutput
 
-# options the run config and the experiment files select; stubbed when a stage has not landed yet
-NEEDED_OPTIONS = {
-    "data": ["synthmatch"],
-    "profile": ["tiny", "cpu", "paper"],
-    "model": ["predator"],
-    "encoder2d": ["scratch", "imagenet", "pri3d"],
-    "features": ["none", "rgb", "sift", "deep"],
-    "projection": ["none", "implicit", "explicit"],
-    "matcher2d": ["sift"],
-    "trainer": ["default"],
-    "registration": ["default"],
-}
 FAKES = [
     "stages.prepare=test_run_support.fake_prepare",
     "stages.train=test_run_support.fake_train",
@@ -41,14 +29,8 @@ N_POINTS = (5000, 2500, 1000, 500, 250)
 
 
 def make_conf(dst: Path) -> Path:
-    """Copy conf/ to ``dst`` and add a one-line option file for every needed option that is missing."""
+    """A copy of conf/ at ``dst`` (tests may add files to it); a missing option file fails the tests."""
     shutil.copytree(CONF_DIR, dst)
-    for group, options in NEEDED_OPTIONS.items():
-        for opt in options:
-            f = dst / group / f"{opt}.yaml"
-            if not f.exists():
-                f.parent.mkdir(parents=True, exist_ok=True)
-                f.write_text(f"name: {opt}\n")
     return dst
 
 

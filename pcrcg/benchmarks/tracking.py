@@ -11,7 +11,6 @@ mlflow, creating the store) and the time of a skipped job (config hash already F
 from __future__ import annotations
 
 import argparse
-import shutil
 import statistics
 import sys
 import tempfile
@@ -20,10 +19,6 @@ from pathlib import Path
 
 from pcrcg.config import CONF_DIR, load_run_config
 from pcrcg.pipeline import EvalOutput, JobInfo, RunContext, TrainOutput, run_job
-
-_NEEDED = {"model": ["predator"], "trainer": ["default"], "registration": ["default"], "data": ["synthmatch"], "encoder2d": ["scratch"],
-           "features": ["none", "deep"], "projection": ["none", "explicit"], "matcher2d": ["sift"]}
-
 
 def noop_prepare(ctx: RunContext) -> Path:
     return ctx.out_dir
@@ -51,20 +46,6 @@ def noop_evaluate(ctx: RunContext) -> EvalOutput:
     return EvalOutput(metrics, arts, {"3DMatch": {"n_pairs": 1623}, "3DLoMatch": {"n_pairs": 1781}})
 
 
-def _conf_dir(tmp: Path) -> Path:
-    """conf/ as is when every group it selects exists, else a copy with one-line stand-ins."""
-    missing = [(g, o) for g, opts in _NEEDED.items() for o in opts if not (CONF_DIR / g / f"{o}.yaml").is_file()]
-    if not missing:
-        return CONF_DIR
-    dst = tmp / "conf"
-    shutil.copytree(CONF_DIR, dst)
-    for g, o in missing:
-        (dst / g).mkdir(exist_ok=True)
-        (dst / g / f"{o}.yaml").write_text(f"name: {o}\n")
-    print(f"(stand-ins for config options not written yet: {', '.join(f'{g}/{o}' for g, o in missing)})")
-    return dst
-
-
 def _time_runs(conf: Path, tmp: Path, logger: str, n: int, tag: str) -> list[float]:
     times = []
     for i in range(n):
@@ -90,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
 
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        conf = _conf_dir(tmp)
+        conf = CONF_DIR
         os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{tmp}/mlflow.db"
         # warm imports shared by both modes (hydra, omegaconf, matplotlib for the per-run plot)
         _time_runs(conf, tmp, "none", 1, "warm")
