@@ -65,12 +65,21 @@ def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius:
 
     Returns 0 (connected to the graph) when no row or column has both a positive and a negative.
     """
-    pos = coords_dist < pos_radius
-    neg = coords_dist > safe_radius
+    return masked_circle_loss(coords_dist < pos_radius, coords_dist > safe_radius, feats_dist, pos_margin,
+                              neg_margin, pos_optimal, neg_optimal, log_scale)
+
+
+def masked_circle_loss(pos: torch.Tensor, neg: torch.Tensor, feats_dist: torch.Tensor, pos_margin: float = 0.1,
+                       neg_margin: float = 1.4, pos_optimal: float = 0.1, neg_optimal: float = 1.4,
+                       log_scale: float = 16.0, pos_scales: torch.Tensor | None = None) -> torch.Tensor:
+    """The circle loss given the positive and negative masks (n, m) bool; ``pos_scales`` (n, m)
+    multiplies the positives' weights (GeoTransformer's overlap-aware variant: sqrt of the overlap)."""
     row_sel = (pos.sum(-1) > 0) & (neg.sum(-1) > 0)
     col_sel = (pos.sum(-2) > 0) & (neg.sum(-2) > 0)
     big = 1e5
     w_pos = torch.clamp(feats_dist - big * (~pos).float() - pos_optimal, min=0).detach()
+    if pos_scales is not None:
+        w_pos = w_pos * pos_scales.detach()
     w_neg = torch.clamp(neg_optimal - (feats_dist + big * (~neg).float()), min=0).detach()
     pos_term = log_scale * (feats_dist - pos_margin) * w_pos
     neg_term = log_scale * (neg_margin - feats_dist) * w_neg

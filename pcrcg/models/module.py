@@ -37,7 +37,10 @@ from pcrcg.models.losses import LossConfig, PredatorLoss
 from pcrcg.models.predator import PredatorOutput, build_predator
 
 STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
-             "overlap_recall", "matchability_precision", "matchability_recall")
+             "overlap_recall", "matchability_precision", "matchability_recall",
+             # model=geotransformer (its coarse loss is the circle_loss)
+             "point_matching_loss", "superpoint_precision", "point_precision")
+MODELS = ("predator", "geotransformer")
 
 
 @dataclass
@@ -81,7 +84,12 @@ class FragmentOutput:
 
 @dataclass
 class PairOutput:
-    """Outputs of both fragments of a pair; ``transform`` is the data set's ground truth (src -> tgt)."""
+    """Outputs of both fragments of a pair; ``transform`` is the data set's ground truth (src -> tgt).
+
+    Models that register the pair themselves (GeoTransformer's local-to-global registration) add
+    ``estimate`` (4, 4) source -> target and the point pairs it came from, ``estimate_pairs`` (C, 6)
+    float32 (source xyz, target xyz), both in the fragments' own frames.
+    """
 
     scene: str
     i: int
@@ -90,6 +98,8 @@ class PairOutput:
     tgt: FragmentOutput
     transform: np.ndarray
     color_coverage: float = float("nan")
+    estimate: np.ndarray | None = None
+    estimate_pairs: np.ndarray | None = None
 
 
 def plain(value: Any) -> Any:
@@ -158,7 +168,15 @@ class PCRCGModule(L.LightningModule):
         self.lifter = lifter if lifter is not None else build_lifter_from(lifting)
         self.training_2d = training_2d(lifting)
         lifted = int(self.lifter.out_dim) if self.lifter is not None else 0
-        self.net = build_predator(dict(model), in_dim=1 + lifted)
+        self.kind = str(model.get("name", "predator"))
+        if self.kind not in MODELS:
+            raise ConfigError("model.name", self.kind, " | ".join(MODELS))
+        if self.kind == "geotransformer":
+            from pcrcg.models.geotransformer import build_geotransformer
+
+            self.net = build_geotransformer(dict(model), in_dim=1 + lifted)
+        else:
+            self.net = build_predator(dict(model), in_dim=1 + lifted)
         self.loss_cfg = LossConfig.from_mapping(model.get("loss"))
         self.criterion = PredatorLoss(self.loss_cfg, float(model["voxel_size"]))
         self.optim_cfg = OptimConfig.from_mapping(optim)
@@ -192,12 +210,19 @@ class PCRCGModule(L.LightningModule):
         feats = torch.cat([lifted.src_feats, lifted.tgt_feats], 0).to(ones.dtype)
         return torch.cat([ones, feats], 1), float(lifted.color_coverage)
 
-    def forward(self, batch: PairBatch) -> tuple[PredatorOutput, float]:
+    def forward(self, batch: PairBatch) -> tuple[Any, float]:
         with record_function("pcrcg.input_features (2D encoder + lifting)"):
             feats, coverage = self.input_features(batch)
+        if self.kind == "geotransformer":  # training matches the true superpoint pairs (GeoTransformer's targets)
+            return self.net(feats, batch.pyramid, batch.transform, targets=self.training), coverage
         return self.net(feats, batch.pyramid), coverage
 
-    def compute_stats(self, batch: PairBatch, out: PredatorOutput) -> dict[str, torch.Tensor]:
+    def compute_stats(self, batch: PairBatch, out: Any) -> dict[str, torch.Tensor]:
+        if self.kind == "geotransformer":
+            from pcrcg.models.geotransformer import geotransformer_loss
+
+            with record_function("pcrcg.losses"):
+                return geotransformer_loss(out, batch.transform, self.net.cfg.loss, self.net.cfg.voxel_size)
         # in training, the matchability labels are only computed while their loss is on
         need = (not self.training) or (self.loss_cfg.w_matchability > 0 and bool(self.matchability_gate > 0))
         with record_function("pcrcg.losses"):
@@ -225,7 +250,8 @@ class PCRCGModule(L.LightningModule):
             return None
         out, coverage = self(batch)
         stats = self.compute_stats(batch, out)
-        self._val_recalls.append(float(stats["recall"]))
+        if "recall" in stats:
+            self._val_recalls.append(float(stats["recall"]))
         self.log_dict({f"val/{k}": stats[k] for k in STAT_KEYS if k in stats}, batch_size=1, on_epoch=True,
                       on_step=False)
         if coverage == coverage:
@@ -266,6 +292,8 @@ class PCRCGModule(L.LightningModule):
     def predict_pair(self, batch: PairBatch) -> PairOutput:
         """Outputs of both fragments in their own frames (un-doing any augmentation of the batch)."""
         out, coverage = self(batch)
+        if self.kind == "geotransformer":
+            return self._predict_geotransformer(batch, out, coverage)
         ns = batch.n_src
         pts = batch.pyramid.points[0]
         to_np = lambda t: t.detach().float().cpu().numpy()  # noqa: E731
@@ -281,6 +309,25 @@ class PCRCGModule(L.LightningModule):
         A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
         T = np.linalg.inv(A_t) @ batch.transform.double().cpu().numpy() @ A_s
         return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage)
+
+    def _predict_geotransformer(self, batch: PairBatch, out: Any, coverage: float) -> PairOutput:
+        """Level-1 points with unit fine features (overlap: their superpoint's matching score,
+        matchability 1) and the local-to-global registration, all in the fragments' own frames."""
+        to_np = lambda t: t.detach().double().cpu().numpy()  # noqa: E731
+        A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
+        inv_s, inv_t = np.linalg.inv(A_s), np.linalg.inv(A_t)
+        own = lambda A, p: (p @ A[:3, :3].T + A[:3, 3]).astype(np.float32)  # noqa: E731
+        s_score, t_score = self.net.point_scores(out)
+        frag = lambda A, pts, f, sc: FragmentOutput(  # noqa: E731
+            own(A, to_np(pts)), to_np(torch.nn.functional.normalize(f, dim=1)).astype(np.float32),
+            to_np(sc).astype(np.float32), np.ones(len(pts), np.float32))
+        src = frag(inv_s, out.src_fine, out.src_feats_f, s_score)
+        tgt = frag(inv_t, out.tgt_fine, out.tgt_feats_f, t_score)
+        lgr = self.net.register(out)
+        T = inv_t @ batch.transform.double().cpu().numpy() @ A_s
+        est = inv_t @ to_np(lgr.transform) @ A_s
+        pairs = np.concatenate([own(inv_s, to_np(lgr.src)), own(inv_t, to_np(lgr.tgt))], 1)
+        return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage, est, pairs)
 
     def predict_step(self, batch: PairBatch, batch_idx: int, dataloader_idx: int = 0) -> PairOutput:
         return self.predict_pair(batch)

@@ -25,14 +25,8 @@ from torch import nn
 from torch.profiler import record_function
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.kpconv.blocks import (
-    LastUnaryBlock,
-    NearestUpsampleBlock,
-    PointNorm,
-    ResnetBottleneckBlock,
-    SimpleBlock,
-    UnaryBlock,
-)
+from pcrcg.models.encoder import kpconv_encoder, run_encoder
+from pcrcg.models.kpconv.blocks import LastUnaryBlock, NearestUpsampleBlock, PointNorm, UnaryBlock
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
@@ -193,30 +187,11 @@ class Predator(nn.Module):
         super().__init__()
         cfg.validate()
         self.cfg = cfg
-        L, v = cfg.num_layers, cfg.voxel_size
-        kp = dict(n_kernel_points=cfg.num_kernel_points, kernel_seed=cfg.kernel_seed)
-
-        def radius(layer: int) -> float:
-            return v * cfg.conv_radius * 2**layer
-
-        def extent(layer: int) -> float:
-            return v * cfg.kp_extent * 2**layer
-
-        dims = [cfg.first_dim * 2**l for l in range(L)]
-        enc: list[nn.Module] = [
-            SimpleBlock(cfg.in_dim, dims[0], radius(0), extent(0), 0, **kp),
-            ResnetBottleneckBlock(dims[0] // 2, dims[0], radius(0), extent(0), 0, **kp),
-        ]
-        self.skip_before: list[int] = []
-        self.skip_dims: list[int] = []
-        for l in range(1, L):
-            self.skip_before.append(len(enc))
-            self.skip_dims.append(dims[l - 1])
-            enc.append(ResnetBottleneckBlock(dims[l - 1], dims[l - 1], radius(l - 1), extent(l - 1), l - 1,
-                                             strided=True, **kp))
-            enc.append(ResnetBottleneckBlock(dims[l - 1], dims[l], radius(l), extent(l), l, **kp))
-            enc.append(ResnetBottleneckBlock(dims[l], dims[l], radius(l), extent(l), l, **kp))
-        self.encoder = nn.ModuleList(enc)
+        L = cfg.num_layers
+        self.encoder, self.layout = kpconv_encoder(cfg.in_dim, cfg.first_dim, L, cfg.voxel_size, cfg.conv_radius,
+                                                   cfg.kp_extent, cfg.num_kernel_points, cfg.kernel_seed)
+        dims = self.layout.dims
+        self.skip_dims: list[int] = list(dims[:-1])
 
         g = cfg.gnn_dim
         self.bottle = nn.Linear(dims[-1], g)
@@ -241,13 +216,8 @@ class Predator(nn.Module):
         """feats (N0, in_dim) for the stacked level-0 points of ``pyr`` -> per-point outputs."""
         if feats.shape[1] != self.cfg.in_dim:
             raise ValueError(f"features have {feats.shape[1]} channels, the model expects in_dim={self.cfg.in_dim}")
-        x = feats
-        skips = []
         with record_function("pcrcg.encoder (KPConv)"):
-            for i, block in enumerate(self.encoder):
-                if i in self.skip_before:
-                    skips.append(x)
-                x = block(x, pyr)
+            x, skips = run_encoder(self.encoder, self.layout, feats, pyr)
         with record_function("pcrcg.attention (overlap attention)"):
             x, ns = self._bottleneck(x, pyr)
         with record_function("pcrcg.decoder"):

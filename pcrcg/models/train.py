@@ -207,8 +207,10 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
     tcfg = _accelerator(device, _get(cfg, "trainer") or {})
     if not mcfg:
         raise ConfigError("model", None, "a model config node (conf/model/predator.yaml)")
-    if mcfg.get("name", "predator") != "predator":
-        raise ConfigError("model.name", mcfg.get("name"), "predator")
+    from pcrcg.models.module import MODELS
+
+    if mcfg.get("name", "predator") not in MODELS:
+        raise ConfigError("model.name", mcfg.get("name"), " | ".join(MODELS))
     out = Path(out_dir or tcfg.get("dir") or "outputs/train")
     out.mkdir(parents=True, exist_ok=True)
     if tcfg.get("num_threads"):
@@ -421,6 +423,9 @@ def save_pair_output(out: PairOutput, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {f"src_{k}": v for k, v in out.src.as_dict().items()}
     arrays.update({f"tgt_{k}": v for k, v in out.tgt.as_dict().items()})
+    if out.estimate is not None:  # a model's own registration (GeoTransformer's LGR)
+        arrays["estimate"] = np.asarray(out.estimate)
+        arrays["estimate_pairs"] = np.asarray(out.estimate_pairs, np.float32).reshape(-1, 6)
     np.savez_compressed(path, transform=out.transform, scene=np.array(out.scene), i=out.i, j=out.j,
                         color_coverage=out.color_coverage, **arrays)
     return path
@@ -430,5 +435,6 @@ def load_pair_output(path: str | Path) -> PairOutput:
     with np.load(path, allow_pickle=False) as z:
         frag = lambda p: FragmentOutput(z[f"{p}_points"], z[f"{p}_descriptors"], z[f"{p}_overlap"],  # noqa: E731
                                         z[f"{p}_matchability"])
+        extra = (z["estimate"], z["estimate_pairs"]) if "estimate" in z.files else (None, None)
         return PairOutput(str(z["scene"]), int(z["i"]), int(z["j"]), frag("src"), frag("tgt"), z["transform"],
-                          float(z["color_coverage"]))
+                          float(z["color_coverage"]), *extra)

@@ -1,0 +1,129 @@
+"""GeoTransformer's settings (``conf/model/geotransformer.yaml``), every radius in voxels of level 0.
+
+The defaults are GeoTransformer's 3DMatch configuration (2.5 cm voxels, 4 levels): encoder
+``init_dim`` 64 (``first_dim`` 128 here: level 0's width), fine features 256 wide at level 1,
+superpoints at the coarsest level, transformer 256 wide with 4 heads and blocks
+``self, cross`` x 3, ``sigma_d`` 0.2 m (8 voxels), ``sigma_a`` 15 deg, ``angle_k`` 3, 64 points
+per patch, 100 Sinkhorn iterations, 128 superpoint targets in training (overlap > 0.1), 256
+superpoint correspondences at test time, ground-truth matching radius 0.05 m (2 voxels), LGR
+acceptance radius 0.1 m (4 voxels), top-3 mutual point matching above confidence 0.05, patches
+with at least 3 correspondences, 5 refinement steps. Losses: overlap-aware circle loss (margins
+0.1 / 1.4, scale 24, positive overlap 0.1) and the point-matching loss (positive radius 0.05 m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from pcrcg.errors import ConfigError
+
+
+@dataclass
+class GeoLossConfig:
+    """Loss settings (``model.loss``); ``positive_radius`` in voxels."""
+
+    positive_margin: float = 0.1
+    negative_margin: float = 1.4
+    positive_optimal: float = 0.1
+    negative_optimal: float = 1.4
+    log_scale: float = 24.0
+    positive_overlap: float = 0.1
+    positive_radius: float = 2.0
+    w_coarse: float = 1.0
+    w_fine: float = 1.0
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any] | None) -> "GeoLossConfig":
+        names = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+
+
+@dataclass
+class GeoTransformerConfig:
+    """Network, matching and registration sizes (see the module docstring)."""
+
+    in_dim: int = 1
+    voxel_size: float = 0.025
+    num_layers: int = 4
+    first_dim: int = 128
+    output_dim: int | None = None  # None: 2 * first_dim
+    hidden_dim: int = 256
+    num_heads: int = 4
+    blocks: Sequence[str] = ("self", "cross", "self", "cross", "self", "cross")
+    sigma_d: float = 8.0
+    sigma_a: float = 15.0
+    angle_k: int = 3
+    conv_radius: float = 2.5
+    kp_extent: float = 2.0
+    num_kernel_points: int = 15
+    kernel_seed: int = 0
+    patch_points: int | None = None  # None: 4 ** (num_layers - 1)
+    sinkhorn_iterations: int = 100
+    num_targets: int = 128
+    target_overlap: float = 0.1
+    num_correspondences: int = 256
+    dual_normalization: bool = True
+    matching_radius: float = 2.0
+    topk: int = 3
+    mutual: bool = True
+    confidence_threshold: float = 0.05
+    correspondence_threshold: int = 3
+    acceptance_radius: float = 4.0
+    refinement_steps: int = 5
+    loss: GeoLossConfig = field(default_factory=GeoLossConfig)
+
+    def __post_init__(self) -> None:
+        if self.output_dim is None:
+            self.output_dim = 2 * int(self.first_dim)
+        if self.patch_points is None:
+            self.patch_points = 4 ** (int(self.num_layers) - 1)
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "GeoTransformerConfig":
+        """From the ``model`` config node (keys of other models are ignored)."""
+        names = set(cls.__dataclass_fields__)
+        kw = {k: v for k, v in dict(m).items() if k in names}
+        kw.update(overrides)
+        kw["loss"] = kw["loss"] if isinstance(kw.get("loss"), GeoLossConfig) else GeoLossConfig.from_mapping(kw.get("loss"))
+        if "blocks" in kw:
+            kw["blocks"] = tuple(kw["blocks"])
+        cfg = cls(**kw)
+        cfg.validate()
+        return cfg
+
+    def metres(self, voxels: float) -> float:
+        return float(voxels) * float(self.voxel_size)
+
+    @property
+    def fine_level(self) -> int:
+        return 1
+
+    @property
+    def coarse_level(self) -> int:
+        return self.num_layers - 1
+
+    def validate(self) -> None:
+        if self.num_layers < 3:
+            raise ConfigError("model.num_layers", self.num_layers,
+                              "an integer >= 3 (GeoTransformer: fine level 1, superpoints at the coarsest)")
+        if self.first_dim % 4 or self.first_dim < 8:
+            raise ConfigError("model.first_dim", self.first_dim, "a multiple of 4, >= 8")
+        if self.hidden_dim % self.num_heads:
+            raise ConfigError("model.num_heads", self.num_heads, f"a divisor of hidden_dim={self.hidden_dim}")
+        if self.hidden_dim % 2:
+            raise ConfigError("model.hidden_dim", self.hidden_dim, "an even integer (sinusoidal embedding)")
+        for b in self.blocks:
+            if b not in ("self", "cross"):
+                raise ConfigError("model.blocks", list(self.blocks), "a list of 'self' / 'cross'")
+        for name in ("patch_points", "sinkhorn_iterations", "num_targets", "num_correspondences", "topk",
+                     "angle_k", "output_dim", "in_dim", "refinement_steps"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"model.{name}", getattr(self, name), "an integer >= 1")
+        for name in ("sigma_d", "sigma_a", "matching_radius", "acceptance_radius", "voxel_size"):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"model.{name}", getattr(self, name), "a positive number")
+        if not 0 <= self.target_overlap < 1:
+            raise ConfigError("model.target_overlap", self.target_overlap, "a number in [0, 1)")
+        if not float(self.loss.positive_radius) > 0:
+            raise ConfigError("model.loss.positive_radius", self.loss.positive_radius, "a positive number")
