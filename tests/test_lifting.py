@@ -247,4 +247,5 @@ def test_build_lifter_from_config(tmp_path):
     assert r.src_feats.shape == (len(s.src_points), 8) and 0 < r.color_coverage < 1
     assert L.match_cache.misses == 2 and len(list((tmp_path / "m").rglob("*.npz"))) == 2
     cfg["features"] = {"name": "deep", "dim": 8}
-    assert build_lifter(cfg).extractor.encoder is not None
+    deep = build_lifter(cfg).extractor
+    assert type(deep.encoder).__name__ == "ResUNet" and deep.encoder.arch == "resnet18" and deep.encoder.out_dim == 8

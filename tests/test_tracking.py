@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-import os
+import hashlib
+import json
 import multiprocessing as mp
+import os
 from pathlib import Path
 
 import pytest
@@ -28,6 +30,10 @@ def test_uri_resolution_order(tmp_path):
     assert ui_command(rel) == f"mlflow ui --backend-store-uri {rel}"
 
 
+def _sha16(blob: bytes) -> str:
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
 def _cfg(**over):
     base = {
         "experiment_name": "window_size", "seed": 0, "window_size": 11, "method": "learned", "icp_init": "identity",
@@ -44,7 +50,11 @@ def _cfg(**over):
 
 def test_config_hash_ignores_bookkeeping_and_sees_everything_else():
     h = config_hash(_cfg())
-    assert len(h) == 16 and h == config_hash(_cfg())
+    # the canonical JSON of what is left (sorted keys, no spaces), SHA-256, 16 hex chars
+    kept = {"seed": 0, "window_size": 11, "method": "learned", "icp_init": "identity",
+            "model": {"name": "predator", "dims": [64, 128]}, "eval": {"n_points": [5000, 250]},
+            "stages": {"train": "a.b", "evaluate": "c.d"}, "registration": {"n_points": [5000]}}
+    assert h == _sha16(json.dumps(kept, sort_keys=True, separators=(",", ":")).encode())
     for key, value in (("experiment_name", "other"), ("logger.tracking_uri", "sqlite:////x.db"),
                        ("paths.data", "/elsewhere"), ("runtime.device", "cuda")):
         assert config_hash(_cfg(**{key: value})) == h, key
@@ -180,13 +190,14 @@ def test_config_hash_follows_the_weights_file_contents(tmp_path):
     w.write_bytes(b"first weights")
     cfg = {"encoder2d": {"name": "pri3d", "weights": str(w)}, "seed": 0}
     h1 = config_hash(cfg)
-    assert config_hash(cfg) == h1
+    with_digest = {"encoder2d": {"name": "pri3d", "weights": str(w), "weights_digest": _sha16(b"first weights")},
+                   "seed": 0}
+    assert h1 == _sha16(json.dumps(with_digest, sort_keys=True, separators=(",", ":")).encode())
     w.write_bytes(b"retrained weights, same path")
     os.utime(w, ns=(1, 2))  # a new mtime even on coarse clocks
     h2 = config_hash(cfg)
     assert h2 != h1
     # no weights / missing file: the path alone (the preflight reports the missing file)
-    assert config_hash({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0}) == \
-        config_hash({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0})
-    gone = {"encoder2d": {"name": "pri3d", "weights": str(tmp_path / "missing.pth")}, "seed": 0}
-    assert config_hash(gone) != h1
+    for cfg in ({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0},
+                {"encoder2d": {"name": "pri3d", "weights": str(tmp_path / "missing.pth")}, "seed": 0}):
+        assert config_hash(cfg) == _sha16(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode())
