@@ -25,6 +25,7 @@ from pcrcg.evaluation.metrics import (
 )
 from pcrcg.evaluation.pairs import INLIER_RATIO_FILE, write_inlier_ratios
 from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig, pair_seed, register_features
+from pcrcg.registration.ransac import ransac, torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,33 @@ def subset(gt: Mapping[str, SceneGT], keys: Mapping[str, set[tuple[int, int]]]) 
     return out
 
 
+# a model's own registration (PairOutput.estimate, GeoTransformer's LGR), scored beside the N of Predator's
+# protocol as "N": its estimate (lgr) and the configured RANSAC on its point pairs (lgr_ransac)
+OWN_ESTIMATES = ("lgr", "lgr_ransac")
+
+
+def own_estimates(out: Any, T_gt: np.ndarray, cfg: RegistrationConfig, seed: np.random.SeedSequence,
+                  inlier_distance: float) -> dict[str, tuple[np.ndarray, float]]:
+    """``{"lgr": (4x4, inlier ratio), "lgr_ransac": ...}`` for an output with ``estimate`` and
+    ``estimate_pairs`` (C, 6) (source xyz, target xyz), else {}; RANSAC as ``cfg.ransac``."""
+    T = getattr(out, "estimate", None)
+    if T is None:
+        return {}
+    pairs = np.asarray(getattr(out, "estimate_pairs", None) if getattr(out, "estimate_pairs", None) is not None
+                       else np.zeros((0, 6)), np.float32).reshape(-1, 6)
+    ir = inlier_ratio(pairs[:, :3], pairs[:, 3:], T_gt, inlier_distance) if len(pairs) else 0.0
+    res = {"lgr": (np.asarray(T, np.float64), ir)}
+    if len(pairs) >= 3:
+        idx = np.arange(len(pairs))
+        with torch_threads(cfg.ransac.threads, cfg.device):
+            r = ransac(pairs[:, :3], pairs[:, 3:], np.stack([idx, idx], 1), cfg.ransac, seed=np.random.default_rng(seed),
+                       device=cfg.device)
+        res["lgr_ransac"] = (np.asarray(r.transform, np.float64), ir)
+    else:
+        res["lgr_ransac"] = (np.eye(4), ir)
+    return res
+
+
 def evaluate_model_outputs(
     outputs: Iterable[Any],
     benchmark: str | os.PathLike | Mapping[str, SceneGT],
@@ -73,6 +101,7 @@ def evaluate_model_outputs(
     irs: dict[int, dict[str, list[float]]] = {n: defaultdict(list) for n in ns}
     pair_irs: dict[int, dict[str, dict[tuple[int, int], float]]] = {n: defaultdict(dict) for n in ns}
     seconds = {n: 0.0 for n in ns}
+    own: list[str] = []  # keys of the model's own estimates (OWN_ESTIMATES), when it gives them
     seen: dict[str, set[tuple[int, int]]] = defaultdict(set)
     coverage: list[float] = []
     n_done = 0
@@ -99,11 +128,23 @@ def evaluate_model_outputs(
                 inlier_ratio(src.points[c[:, 0]], tgt.points[c[:, 1]], T_gt, inlier_distance) if len(c) else 0.0
             )
             pair_irs[n][scene][(i, j)] = irs[n][scene][-1]
+        t0 = time.perf_counter()
+        mine = own_estimates(out, T_gt, cfg, pair_seed(seed, scene, i, j, 0), inlier_distance)
+        for key, (T_own, ir) in mine.items():
+            if key not in est:
+                own.append(key)
+                est[key], irs[key], pair_irs[key] = defaultdict(dict), defaultdict(list), defaultdict(dict)  # type: ignore[index]
+                seconds[key] = 0.0  # type: ignore[index]
+            est[key][scene][(i, j)] = T_own  # type: ignore[index]
+            irs[key][scene].append(ir)  # type: ignore[index]
+            pair_irs[key][scene][(i, j)] = ir  # type: ignore[index]
+        if "lgr_ransac" in mine:  # LGR itself runs in the network's inference
+            seconds["lgr_ransac"] += time.perf_counter() - t0  # type: ignore[index]
         n_done += 1
 
     scored = subset(gt, seen) if only_evaluated else dict(gt)
     metrics: dict[str, float] = {}
-    for n in ns:
+    for n in [*ns, *own]:
         score = score_benchmark(scored, est[n], predator_variant, threshold=rmse_threshold)
         cm = correspondence_metrics({s: irs[n].get(s, []) for s in scored}, fmr_threshold)
         metrics.update({

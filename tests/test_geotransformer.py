@@ -1,0 +1,278 @@
+"""GeoTransformer (model=geotransformer): each block on small inputs with known answers, then the
+backbone trained and evaluated at the tiny profile with and without color (issue 15)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from conftest import REPO, compose
+from pcrcg.errors import ConfigError
+from pcrcg.geometry import make_transform, random_rotation
+from pcrcg.models.geotransformer import GeoTransformerConfig, build_geotransformer
+from pcrcg.models.geotransformer.embedding import GeometricStructureEmbedding, triplet_angles
+from pcrcg.models.geotransformer.lgr import local_to_global, patch_correspondences, weighted_procrustes
+from pcrcg.models.geotransformer.loss import point_matching_labels, point_matching_loss
+from pcrcg.models.geotransformer.superpoints import (
+    patch_overlaps,
+    point_to_node_partition,
+    superpoint_matching,
+)
+from pcrcg.models.geotransformer.transport import log_optimal_transport
+
+
+def rigid(seed: int, shift: float = 1.0) -> torch.Tensor:
+    rng = np.random.default_rng(seed)
+    T = make_transform(random_rotation(rng, math.pi), rng.normal(0, shift, 3))
+    return torch.from_numpy(T)
+
+
+def move(T: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    T = T.to(p.dtype)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+# --------------------------------------------------------------------------- optimal transport
+
+
+def test_sinkhorn_marginals_with_dustbins_and_padding():
+    torch.manual_seed(0)
+    scores = torch.randn(2, 6, 5, requires_grad=True)
+    rows = torch.tensor([[1, 1, 1, 1, 0, 0], [1, 1, 1, 1, 1, 1]], dtype=torch.bool)
+    cols = torch.tensor([[1, 1, 1, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
+    alpha = torch.tensor(0.5, requires_grad=True)
+    logP = log_optimal_transport(scores, alpha, rows, cols, iterations=200)  # (2, 7, 6)
+    P = torch.exp(logP.detach())
+    for b in range(2):
+        m, n = int(rows[b].sum()), int(cols[b].sum())
+        r, c = rows[b].nonzero().squeeze(1), cols[b].nonzero().squeeze(1)
+        # every real point sends and receives exactly one unit; the dustbins take the rest
+        torch.testing.assert_close(P[b, r].sum(1), torch.ones(m), atol=1e-4, rtol=0)
+        torch.testing.assert_close(P[b, :, c].sum(0), torch.ones(n), atol=1e-4, rtol=0)
+        assert abs(float(P[b, -1].sum()) - n) < 1e-3 and abs(float(P[b, :, -1].sum()) - m) < 1e-3
+        # padding carries nothing
+        assert float(P[b, :-1][~rows[b]].abs().sum()) < 1e-6
+        assert float(P[b, :, :-1][:, ~cols[b]].abs().sum()) < 1e-6
+    (torch.exp(logP[:, :-1, :-1]) * torch.randn(2, 6, 5)).sum().backward()
+    assert torch.isfinite(scores.grad).all() and torch.isfinite(alpha.grad)
+
+
+# --------------------------------------------------------------------------- embedding
+
+
+def test_geometric_embedding_is_invariant_to_a_rigid_motion():
+    torch.manual_seed(0)
+    pts = torch.rand(24, 3, dtype=torch.float64) * 2.0
+    emb = GeometricStructureEmbedding(16, sigma_d=0.2, sigma_a=15.0, angle_k=3).double()
+    moved = move(rigid(1), pts)
+    a, b = emb(pts), emb(moved)
+    assert a.shape == (24, 24, 16)
+    torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-6)
+    # a non-rigid change (a stretch along x) changes it: the test can fail
+    with torch.no_grad():
+        assert float((emb(pts * torch.tensor([1.5, 1.0, 1.0], dtype=torch.float64)) - a).abs().max()) > 1e-2
+
+
+def test_triplet_angles_known_values():
+    # a right angle at the origin: the neighbour of p0 is p1 (distance 1), p2 lies on the y axis
+    pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    ang = triplet_angles(pts, k=1)
+    assert ang.shape == (3, 3, 1)
+    assert abs(float(ang[0, 2, 0]) - math.pi / 2) < 1e-6  # angle(p1 - p0, p2 - p0)
+    assert abs(float(ang[0, 1, 0])) < 1e-6  # the neighbour itself: 0
+
+
+# --------------------------------------------------------------------------- LGR
+
+
+def test_weighted_procrustes_recovers_a_transform():
+    torch.manual_seed(0)
+    src = torch.randn(30, 3, dtype=torch.float64)
+    T = rigid(2)
+    torch.testing.assert_close(weighted_procrustes(src, move(T, src)), T, atol=1e-9, rtol=0)
+    # weights: zero-weight outliers do not move the fit
+    tgt = move(T, src)
+    tgt[:10] += 5.0
+    w = torch.ones(30, dtype=torch.float64)
+    w[:10] = 0
+    torch.testing.assert_close(weighted_procrustes(src, tgt, w), T, atol=1e-9, rtol=0)
+
+
+def test_lgr_recovers_a_known_transform_from_exact_correspondences_among_outliers():
+    torch.manual_seed(0)
+    T = rigid(3).float()
+    groups, src, tgt = [], [], []
+    for g in range(12):  # 12 patch pairs of 6 point pairs; 5 of them are wrong superpoint matches
+        centre = torch.randn(3) * 2
+        s = centre + 0.1 * torch.randn(6, 3)
+        t = move(T, s) if g >= 5 else torch.randn(6, 3) * 2  # outlier patches: random targets
+        src.append(s), tgt.append(t), groups.append(torch.full((6,), g))
+    src, tgt, group = torch.cat(src), torch.cat(tgt), torch.cat(groups)
+    res = local_to_global(src, tgt, torch.ones(len(src)), group, acceptance_radius=0.1, min_correspondences=3, steps=5)
+    torch.testing.assert_close(res.transform, T, atol=1e-4, rtol=0)
+    assert res.hypotheses == 12
+    assert bool(res.inliers[30:].all()) and int(res.inliers[:30].sum()) <= 2
+    # no patch with enough pairs: the fit on all pairs, refined on its inliers (still exact here)
+    res2 = local_to_global(src[30:], tgt[30:], torch.ones(42), torch.arange(42), 0.1, 3, 5)
+    assert res2.hypotheses == 0
+    torch.testing.assert_close(res2.transform, T, atol=1e-4, rtol=0)
+
+
+def test_patch_correspondences_mutual_top_k():
+    la = torch.full((1, 4, 4), -20.0)
+    la[0, 0, 1] = la[0, 1, 0] = la[0, 2, 2] = math.log(0.9)
+    la[0, 2, 0] = math.log(0.5)  # row 2's second best: not mutual top-1
+    sm = torch.tensor([[True, True, True]])
+    chosen, s = patch_correspondences(la, sm, sm, k=1, threshold=0.05, mutual=True)
+    assert chosen.shape == (1, 3, 3)
+    assert sorted(map(tuple, chosen[0].nonzero().tolist())) == [(0, 1), (1, 0), (2, 2)]
+    assert abs(float(s[0, 2, 2]) - 0.9) < 1e-6
+
+
+# --------------------------------------------------------------------------- superpoints
+
+
+def test_partition_assigns_every_point_to_its_nearest_superpoint():
+    torch.manual_seed(0)
+    pts = torch.rand(200, 3)
+    nodes = torch.tensor([[0.25, 0.25, 0.5], [0.75, 0.75, 0.5], [5.0, 5.0, 5.0]])
+    p = point_to_node_partition(pts, nodes, k=150)
+    assert p.node_mask.tolist() == [True, True, False]  # the far node owns nothing
+    owner = torch.cdist(pts, nodes).argmin(1)
+    for m in range(2):
+        got = set(p.indices[m][p.mask[m]].tolist())
+        own = set((owner == m).nonzero().squeeze(1).tolist())
+        assert got <= own and len(got) == min(150, len(own))
+    assert bool((p.indices[~p.mask] == 200).all())
+
+
+def test_superpoint_matching_and_overlaps_on_a_synthetic_pair():
+    torch.manual_seed(0)
+    # target: 40 superpoints on a grid, each with a small patch; source: the same scene moved
+    g = torch.stack(torch.meshgrid(torch.arange(5.0), torch.arange(8.0), indexing="ij"), -1).reshape(-1, 2) * 0.3
+    tgt_nodes = torch.cat([g, torch.zeros(40, 1)], 1)
+    tgt_fine = (tgt_nodes.unsqueeze(1) + 0.05 * torch.randn(40, 6, 3)).reshape(-1, 3)
+    T = rigid(4).float()  # source -> target
+    Tinv = torch.linalg.inv(T)
+    src_nodes, src_fine = move(Tinv, tgt_nodes), move(Tinv, tgt_fine)
+    sp = point_to_node_partition(src_fine, src_nodes, 8)
+    tp = point_to_node_partition(tgt_fine, tgt_nodes, 8)
+    pairs, ov = patch_overlaps(src_nodes, tgt_nodes, src_fine, tgt_fine, sp, tp, T, radius=0.02)
+    diag = pairs[:, 0] == pairs[:, 1]
+    assert bool(diag.any()) and torch.allclose(ov[diag], torch.ones(int(diag.sum())))  # a patch overlaps itself fully
+    assert not bool((~diag).any()) or float(ov[~diag].max()) < 0.5  # neighbours 0.3 m apart barely touch
+    # features: the target's are the source's with noise; matching finds the identity permutation
+    f = torch.nn.functional.normalize(torch.randn(40, 16), dim=1)
+    ft = torch.nn.functional.normalize(f + 0.05 * torch.randn(40, 16), dim=1)
+    mask = torch.ones(40, dtype=torch.bool)
+    corr, scores = superpoint_matching(f, ft, mask, mask, k=40, dual=True)
+    assert corr.shape == (40, 2) and bool((scores[:-1] >= scores[1:]).all())
+    assert float((corr[:, 0] == corr[:, 1]).float().mean()) > 0.9
+    # masked superpoints are never matched
+    mask2 = mask.clone()
+    mask2[:10] = False
+    corr2, _ = superpoint_matching(f, ft, mask2, mask, k=50)
+    assert bool((corr2[:, 0] >= 10).all())
+
+
+def test_point_matching_labels_and_loss():
+    src = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [5, 5, 5]]])
+    tgt = torch.tensor([[[0.0, 0, 0.01], [9, 9, 9], [0, 0, 0]]])
+    sm = torch.tensor([[True, True, False]])
+    tm = torch.tensor([[True, True, False]])
+    lab = point_matching_labels(src, tgt, sm, tm, torch.eye(4), radius=0.05)
+    assert lab[0, 0, 0] and lab[0, 1, 3] and lab[0, 3, 1]  # a pair, an unmatched source, an unmatched target
+    assert int(lab.sum()) == 3
+    la = torch.log(torch.full((1, 4, 4), 0.5))
+    assert abs(float(point_matching_loss(la, lab)) - math.log(2)) < 1e-6
+
+
+# --------------------------------------------------------------------------- config and network
+
+
+def _model_cfg(*overrides: str) -> dict:
+    cfg = compose("run", ["model=geotransformer", "profile=tiny", *overrides])
+    return OmegaConf.to_container(cfg.model, resolve=True)
+
+
+def test_config_shares_the_backbone_settings_with_predator():
+    geo = _model_cfg()
+    pred = OmegaConf.to_container(compose("run", ["profile=tiny"]).model, resolve=True)
+    common = OmegaConf.load(REPO / "conf" / "model" / "common" / "kpconv.yaml")
+    for key in common:  # predator.yaml keeps its own copy (read directly by pcrcg.benchmarks): they agree
+        assert geo[key] == pred[key], key
+    c = GeoTransformerConfig.from_mapping(geo)
+    assert (c.output_dim, c.patch_points, c.hidden_dim) == (2 * geo["first_dim"], 16, pred["gnn_dim"])
+    paper = GeoTransformerConfig.from_mapping(_model_cfg("profile=paper"))
+    assert (paper.voxel_size, paper.num_layers, paper.first_dim, paper.output_dim, paper.hidden_dim,
+            paper.patch_points) == (0.025, 4, 128, 256, 256, 64)  # GeoTransformer's 3DMatch sizes
+    assert abs(paper.metres(paper.sigma_d) - 0.2) < 1e-12 and abs(paper.metres(paper.acceptance_radius) - 0.1) < 1e-12
+    with pytest.raises(ConfigError, match="model.num_layers"):
+        GeoTransformerConfig.from_mapping({**geo, "num_layers": 2})
+    with pytest.raises(ConfigError, match="model.blocks"):
+        GeoTransformerConfig.from_mapping({**geo, "blocks": ["self", "bogus"]})
+
+
+def test_network_shapes_and_color_changes_only_the_first_layer():
+    from pcrcg.models.datamodule import PairCollate
+    from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
+    from pcrcg.models.toy import toy_pair
+
+    s = toy_pair(0, density=60.0)
+    spec = PyramidSpec(0.12, 3, 2.5)
+    spec = PyramidSpec(0.12, 3, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
+    batch = PairCollate(spec, overlap_radius=0.18)([s])
+    cfg = {**_model_cfg(), "voxel_size": 0.12}
+    torch.manual_seed(0)
+    geo, geo_c = build_geotransformer(cfg, in_dim=1), build_geotransformer(cfg, in_dim=33)
+    sd, sd_c = geo.state_dict(), geo_c.state_dict()
+    assert sd.keys() == sd_c.keys()
+    differ = [k for k in sd if sd[k].shape != sd_c[k].shape]
+    assert differ == ["backbone.encoder.0.conv.weights"]  # the first KPConv's input width only
+    n0 = batch.pyramid.points[0].shape[0]
+    out = geo(torch.ones(n0, 1), batch.pyramid, batch.transform, targets=True)
+    k = geo.cfg.patch_points
+    assert out.log_assign.shape == (len(out.node_pairs), k + 1, k + 1)
+    assert out.src_feats_f.shape[1] == geo.cfg.output_dim and len(out.gt_pairs) > 0
+    lgr = geo.eval().register(geo(torch.ones(n0, 1), batch.pyramid))
+    assert lgr.transform.shape == (4, 4) and lgr.src.shape == lgr.tgt.shape
+
+
+# --------------------------------------------------------------------------- tiny profile, end to end
+
+
+def _run_cfg(root: Path, out: Path, *overrides: str):
+    return compose("run", ["model=geotransformer", "profile=tiny", f"data.root={root}", "logger=none",
+                           f"trainer.dir={out}", "trainer.progress_bar=false", "eval.n_points=[250]",
+                           "eval.max_pairs=2", "trainer.accelerator=cpu", *overrides])
+
+
+@pytest.mark.parametrize("color", [
+    pytest.param([], id="geometry"),
+    pytest.param(["features=deep", "projection=explicit"], id="pcr-cg", marks=pytest.mark.slow),
+])
+def test_tiny_training_and_evaluation(tiny_root, tmp_path, color):
+    from pcrcg.evaluation.run import evaluate
+    from pcrcg.models.train import load_module, train
+
+    cfg = _run_cfg(tiny_root, tmp_path / "train", *color)
+    res = train(cfg, out_dir=tmp_path / "train")
+    module = load_module(res["checkpoint"], device="cpu")
+    assert module.kind == "geotransformer"
+    assert module.in_dim == (1 if not color else 1 + int(module.lifter.out_dim)) and (module.lifter is None) == (not color)
+    assert res["metrics"]["train/global_step"] == 4
+    m = evaluate(cfg, data_root=tiny_root, checkpoint=res["checkpoint"], out_dir=tmp_path / "eval", progress=False)
+    metrics = m["metrics"]
+    for b in ("3DMatch", "3DLoMatch"):
+        for key in ("rr_250", "ir_250", "rr_lgr", "ir_lgr", "fmr_lgr", "rr_lgr_ransac"):
+            assert f"{b}/{key}" in metrics, key
+        assert 0.0 <= metrics[f"{b}/ir_lgr"] <= 100.0
+        est = tmp_path / "eval" / "learned" / b / "lgr"
+        assert any(est.glob("*/est.log"))
+    if color:  # explicit: windows around SIFT matches, which the tiny views may not have on 2 pairs
+        assert 0.0 <= metrics["color_coverage"] <= 1.0
