@@ -1,9 +1,9 @@
 """Speed and memory of the 3D network stage (prints figures; asserts nothing).
 
-``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [pairs=4] [reps=3] [device=cpu]
-[threads=1] [root=null] [color=none|rgb|deep] [breakdown=false]``
+``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [models=[predator,geotransformer]] [pairs=4]
+[reps=3] [device=cpu] [threads=1] [root=null] [color=none|rgb|deep] [breakdown=false]``
 
-Per profile (model sizes from ``conf/profile/<p>.yaml`` + ``conf/model/predator.yaml``), on the
+Per profile and model (sizes from ``conf/profile/<p>.yaml`` + ``conf/model/<model>.yaml``), on the
 generated data set ``data/synthmatch-<p>`` when it exists (else a synthetic box-room pair sized for
 the profile's voxel, said so in the output):
 
@@ -45,13 +45,26 @@ def _time(fn: Callable[[], Any], reps: int) -> float:
     return float(np.median(ts))
 
 
-def profile_config(profile: str) -> dict[str, Any]:
+def model_node(model: str):
+    """``conf/model/<model>.yaml`` with its ``common/<name>@_here_`` defaults merged under it (no Hydra)."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.load(CONF / "model" / f"{model}.yaml")
+    parts = []
+    for d in node.pop("defaults", None) or []:
+        name = str(d)
+        if name != "_self_":
+            parts.append(OmegaConf.load(CONF / "model" / f"{name.split('@')[0]}.yaml"))
+    return OmegaConf.merge(*parts, node)
+
+
+def profile_config(profile: str, model: str = "predator") -> dict[str, Any]:
     """The resolved ``model`` and ``trainer`` nodes of a profile (no Hydra needed)."""
     from omegaconf import OmegaConf
 
     root = OmegaConf.create({
         "profile": OmegaConf.load(CONF / "profile" / f"{profile}.yaml"),
-        "model": OmegaConf.load(CONF / "model" / "predator.yaml"),
+        "model": model_node(model),
         "trainer": OmegaConf.load(CONF / "trainer" / "default.yaml"),
     })
     return OmegaConf.to_container(root, resolve=True)  # type: ignore[return-value]
@@ -86,14 +99,14 @@ def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
 
 
 def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
-                  color: str = "none", breakdown: bool = False) -> dict[str, Any]:
+                  color: str = "none", breakdown: bool = False, model: str = "predator") -> dict[str, Any]:
     import torch
 
     from pcrcg.models.datamodule import AugmentConfig, PairCollate
     from pcrcg.models.kpconv import PyramidCache, PyramidSpec, calibrate_limits
     from pcrcg.models.module import PCRCGModule
 
-    cfg = profile_config(profile)
+    cfg = profile_config(profile, model)
     m, t = cfg["model"], cfg["trainer"]
     data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
     lifting = _lifting(color, cfg["profile"])
@@ -102,7 +115,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     clouds = [c for s in samples for c in (s.src_points, s.tgt_points)]
     limits = calibrate_limits(clouds, spec0, m["neighbor_keep_ratio"])
     spec = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], limits, m["max_points"])
-    r_ov = m["loss"]["overlap_radius"] * m["voxel_size"]
+    r_ov = m["loss"].get("overlap_radius", 1.5) * m["voxel_size"]
     aug = AugmentConfig.from_mapping(t.get("augment"))
 
     cold = []
@@ -156,7 +169,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     return {
-        "profile": profile, "device": device, "data": source, "color": color, "pairs": len(samples),
+        "profile": profile, "model": model, "device": device, "data": source, "color": color, "pairs": len(samples),
         "voxel": m["voxel_size"], "levels": m["num_layers"], "first_dim": m["first_dim"], "params": n_params,
         "in_dim": module.in_dim, "level0_points_per_pair": float(np.mean(n0)), "neighbor_limits": list(limits),
         "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
@@ -197,21 +210,25 @@ def _breakdown(module, opt, batches, sync, reps: int) -> dict[str, float]:
 def _parse(argv: list[str]) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
-    args = {"profiles": ["tiny", "cpu"], "pairs": 4, "reps": 3, "device": "cpu", "threads": 1, "root": None,
-            "color": "none", "child": False, "breakdown": False}
+    args = {"profiles": ["tiny", "cpu"], "models": ["predator", "geotransformer"], "pairs": 4, "reps": 3,
+            "device": "cpu", "threads": 1, "root": None, "color": "none", "child": False, "breakdown": False}
     for a in argv:
         k, _, v = a.partition("=")
         if k not in args:
             raise SystemExit(f"unknown argument {k!r}; known: {sorted(args)}")
         val = OmegaConf.to_container(OmegaConf.create(f"v: {v}"))["v"] if v else v  # type: ignore[index]
         args[k] = val
-    if isinstance(args["profiles"], str):
-        args["profiles"] = [args["profiles"]]
+    for k in ("profiles", "models"):
+        if isinstance(args[k], str):
+            args[k] = [args[k]]
+    for m in args["models"]:
+        if not (CONF / "model" / f"{m}.yaml").is_file():
+            raise SystemExit(f"models: unknown model {m!r} (conf/model/<name>.yaml)")
     return args
 
 
 def _print(row: dict[str, Any]) -> None:
-    print(f"\n[{row['profile']}] {row['device']}, {row['data']}, color={row['color']}")
+    print(f"\n[{row['profile']}] model={row.get('model', 'predator')}, {row['device']}, {row['data']}, color={row['color']}")
     print(f"  model: voxel {row['voxel']} m, {row['levels']} levels, first_dim {row['first_dim']}, "
           f"{row['params'] / 1e6:.2f} M params, in_dim {row['in_dim']}; "
           f"{row['level0_points_per_pair']:.0f} level-0 points per pair; limits {row['neighbor_limits']}")
@@ -232,23 +249,30 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     torch.set_num_threads(int(args["threads"]))
     if args["child"]:
         row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
-                            args["root"], str(args["color"]), bool(args["breakdown"]))
+                            args["root"], str(args["color"]), bool(args["breakdown"]), str(args["models"][0]))
         print("@@" + json.dumps(row))
         return [row]
     rows = []
     for p in args["profiles"]:
-        cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", "child=true"]
-        cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown")]
-        if args["root"]:
-            cmd.append(f"root={args['root']}")
-        res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
-        line = next((x for x in res.stdout.splitlines() if x.startswith("@@")), None)
-        if line is None:
-            print(f"[{p}] failed:\n{res.stderr[-3000:]}")
-            continue
-        row = json.loads(line[2:])
-        _print(row)
-        rows.append(row)
+        for model in args["models"]:  # each in its own process: its own peak memory
+            cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", f"models=[{model}]", "child=true"]
+            cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown")]
+            if args["root"]:
+                cmd.append(f"root={args['root']}")
+            res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            line = next((x for x in res.stdout.splitlines() if x.startswith("@@")), None)
+            if line is None:
+                print(f"[{p}] model={model} failed:\n{res.stderr[-3000:]}")
+                continue
+            row = json.loads(line[2:])
+            _print(row)
+            rows.append(row)
+    if len(args["models"]) > 1 and rows:
+        print("\nseconds per pair, side by side (training step | inference):")
+        for p in args["profiles"]:
+            cells = [f"{r['model']} {r['train_s_per_pair']:.3f} | {r['infer_s_per_pair']:.3f}"
+                     for r in rows if r["profile"] == p]
+            print(f"  [{p}] " + "    ".join(cells))
     return rows
 
 

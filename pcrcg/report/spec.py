@@ -33,13 +33,14 @@ METRIC_KEYS: dict[str, tuple[str, ...]] = {
     "RRE_deg": ("{b}/rre_{n}", "{b}/rre"),
     "RTE_m": ("{b}/rte_{n}", "{b}/rte"),
 }
-# without a sample size (icp_init, sift_dlt): the method's own recall, else the one at 5000 points
+# without a sample size (icp_init, sift_dlt, geotransformer): the method's own recall, else the one at 5000 points
+# (a model that registers pairs itself, GeoTransformer's LGR: its own estimate's metrics, ``_lgr``)
 METRIC_KEYS_NO_N: dict[str, tuple[str, ...]] = {
-    "RR": ("{b}/rr", "{b}/rr_5000"),
-    "FMR": ("{b}/fmr", "{b}/fmr_5000"),
-    "IR": ("{b}/ir", "{b}/ir_5000"),
-    "RRE_deg": ("{b}/rre",),
-    "RTE_m": ("{b}/rte",),
+    "RR": ("{b}/rr", "{b}/rr_lgr", "{b}/rr_5000"),
+    "FMR": ("{b}/fmr", "{b}/fmr_lgr", "{b}/fmr_5000"),
+    "IR": ("{b}/ir", "{b}/ir_lgr", "{b}/ir_5000"),
+    "RRE_deg": ("{b}/rre_lgr", "{b}/rre"),
+    "RTE_m": ("{b}/rte_lgr", "{b}/rte"),
 }
 METRIC_TITLES = {
     "RR": "Registration Recall (%)",
