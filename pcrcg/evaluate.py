@@ -201,6 +201,12 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     out = infer_clouds(module, src, tgt, src_views, tgt_views)
     res = register_features(as_fragment(out.src), as_fragment(out.tgt), n_points, rcfg, seed=int(cfg.seed))
+    T = np.asarray(res.transform, dtype=float)
+    own = {}
+    if out.estimate is not None:  # a model that registers the pair itself (GeoTransformer's LGR): its estimate
+        own = {"registration": "lgr", "lgr_pairs": int(len(out.estimate_pairs)),
+               "transform_ransac": _shift(T, offset, back=True).round(10).tolist()}
+        T = np.asarray(out.estimate, dtype=float)
     return {
         "method": "learned",
         "checkpoint": str(ckpt),
@@ -215,7 +221,8 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
         "seconds": round(time.perf_counter() - t0, 4),
         **flags,
         "warnings": warnings,
-        "transform": _shift(np.asarray(res.transform, dtype=float), offset, back=True).round(10).tolist(),
+        **own,
+        "transform": _shift(T, offset, back=True).round(10).tolist(),
     }
 
 

@@ -276,3 +276,14 @@ def test_tiny_training_and_evaluation(tiny_root, tmp_path, color):
         assert any(est.glob("*/est.log"))
     if color:  # explicit: windows around SIFT matches, which the tiny views may not have on 2 pairs
         assert 0.0 <= metrics["color_coverage"] <= 1.0
+    else:  # two user clouds (mode=pair): LGR's estimate travels with the outputs and through their .npz
+        from pcrcg.data.dataset import PairDataset
+        from pcrcg.models.train import infer_clouds, load_pair_output, save_pair_output
+
+        s = PairDataset(tiny_root, "3DMatch", 0)[0]
+        out = infer_clouds(module, s.src_points, s.tgt_points)
+        assert out.estimate.shape == (4, 4) and out.estimate_pairs.shape[1] == 6
+        assert len(out.src.points) == len(out.src.descriptors) < len(s.src_points)  # level-1 points
+        back = load_pair_output(save_pair_output(out, tmp_path / "pair.npz"))
+        np.testing.assert_allclose(back.estimate, out.estimate)
+        np.testing.assert_allclose(back.estimate_pairs, out.estimate_pairs)
