@@ -27,6 +27,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from pcrcg.data.layout import BENCHMARKS
 from pcrcg.errors import ConfigError
+from pcrcg.tracking.git import DEFAULT_IDENTITY, IDENTITIES
 from pcrcg.vision.matching import LEARNED_METHODS, METHODS as MATCHER_METHODS, PAIR_MODES
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -190,10 +191,12 @@ class LoggerSchema:
     name: str = "mlflow"
     tracking_uri: Optional[str] = None
     skip_finished: bool = True
+    identity: str = DEFAULT_IDENTITY
     log_checkpoint: bool = True
 
     def __post_init__(self) -> None:
         _one_of("logger.name", self.name, KNOWN_OPTIONS["logger"])
+        _one_of("logger.identity", self.identity, IDENTITIES)
 
 
 @dataclass

@@ -12,8 +12,9 @@ The stages are plain functions named in the config (``stages.prepare``, ``stages
 The defaults below call the other stages' library functions, imported lazily so that a
 stage that is not installed fails with a message naming it. Tests swap in fake stages.
 
-Tracking (MLflow, ``logger=mlflow``): a run is tagged with its config hash; when a FINISHED
-run with the same hash exists in the experiment the job is skipped. Any error after the
+Tracking (MLflow, ``logger=mlflow``): a run is tagged with its config hash and code version; when a
+FINISHED run with the same hash (and code version, under ``logger.identity=config_and_code``, the
+default) exists in the experiment the job is skipped. Any error after the
 config is validated is recorded on the run (FAILED, ``error`` tag, ``error.txt``); a
 :class:`~pcrcg.errors.ConfigError` raised there (a missing weights file) marks the run
 ``not_run``. In a multirun the job then returns normally so that the sweep goes on (the
@@ -41,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
 from pcrcg.errors import ConfigError, PcrcgError, one_line
+from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -246,7 +248,7 @@ def train_model(ctx: RunContext) -> TrainOutput:
     """
     from filelock import FileLock
 
-    key = config_hash(ctx.cfg, TRAIN_HASH_EXCLUDE)
+    key = train_key(ctx.cfg)
     cache = ctx.path("checkpoints") / key
     ckpt = cache / "model.ckpt"
     hist_file = cache / "history.json"
@@ -273,9 +275,18 @@ def train_model(ctx: RunContext) -> TrainOutput:
             os.replace(tmp, ckpt)
             hist_file.write_text(json.dumps(out.history))
             (cache / "source.json").write_text(json.dumps({"run_id": ctx.run_id, "experiment": ctx.cfg.experiment_name,
-                                                           "train_hash": key}))
+                                                           "train_hash": key, "code_version": code_version()}))
             out.checkpoint = ckpt
     return out
+
+
+def train_key(cfg: DictConfig) -> str:
+    """The checkpoint cache's key: the hash of the training config (evaluation-only settings left out) and,
+    under ``logger.identity=config_and_code``, the code version (a model of other code is another model)."""
+    key = config_hash(cfg, TRAIN_HASH_EXCLUDE)
+    if same_code(identity(cfg)):
+        key = config_hash({"train_hash": key, "code_version": code_version()})
+    return key
 
 
 def _reusable_checkpoint(ckpt: Path) -> bool:
@@ -319,6 +330,11 @@ def evaluate_method(ctx: RunContext) -> EvalOutput:
 # --------------------------------------------------------------------------- the run
 
 
+def identity(cfg: DictConfig) -> str:
+    """``logger.identity``: whether a run of other code counts as the same run (``config``) or not."""
+    return str(OmegaConf.select(cfg, "logger.identity", default=DEFAULT_IDENTITY))
+
+
 def needs_training(cfg: DictConfig) -> bool:
     return cfg.method == "learned" or (cfg.method in CLASSICAL_METHODS and cfg.icp_init == "learned")
 
@@ -354,13 +370,18 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         for stale in tracker.close_stale(h):
             print(f"[run] closed stale run {stale} of config hash {h} as KILLED (its process is gone)")
         if cfg.logger.skip_finished:
-            done = tracker.find_finished(h)
+            code = code_version() if same_code(identity(cfg)) else None
+            done = tracker.find_finished(h, code)
             if done is not None:
                 outcome = RunOutcome("skipped", h, name, done.run_id, uri, output_dir=str(job.output_dir))
                 write_status(job.output_dir, outcome)
-                print(f"[run] skipped {name!r}: run {done.run_id} with config hash {h} already FINISHED "
-                      f"in experiment {cfg.experiment_name!r}")
+                print(f"[run] skipped {name!r}: run {done.run_id} with config hash {h}"
+                      f"{f' and code version {code}' if code else ''} already FINISHED in experiment {cfg.experiment_name!r}")
                 return outcome
+            older = tracker.find_finished(h) if code else None
+            if older is not None:
+                print(f"[run] run {older.run_id} with config hash {h} FINISHED with other code: running {name!r} "
+                      f"again with code version {code} (logger.identity=config would skip it)")
 
     from pcrcg.cli import interrupt_reason, sigterm_as_interrupt
 
@@ -463,7 +484,7 @@ def _check_inputs(ctx: RunContext) -> None:
 
 def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dict[str, str]:
     from pcrcg.tracking.git import git_info
-    from pcrcg.tracking.runs import TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE
+    from pcrcg.tracking.runs import TAG_CODE, TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE
 
     sha, dirty = git_info()
     tags = {
@@ -471,6 +492,7 @@ def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dic
         TAG_HASH: h,
         TAG_GIT: sha,
         "git_dirty": str(dirty).lower(),
+        TAG_CODE: code_version(),
         TAG_PROFILE: str(OmegaConf.select(cfg, "profile.name", default="?")),
         "method": str(cfg.method),
         "label": method_label(data),

@@ -241,3 +241,61 @@ def test_shipped_paper_numbers_match_the_shared_copy():
     if not (SHARED / "paper" / "paper_tables.csv").is_file():
         pytest.skip("../shared is not here")
     assert PAPER_CSV.read_bytes() == (SHARED / "paper" / "paper_tables.csv").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def code_store(tmp_path_factory):
+    """window_size 3x3, seeds 0 and 1 run by code A, then seed 0 again by code B (an edit since)."""
+    from mlflow.tracking import MlflowClient
+
+    from pcrcg.tracking.store import ensure_experiment, ensure_store
+
+    root = tmp_path_factory.mktemp("codes")
+    uri = f"sqlite:///{root}/mlflow.db"
+    ensure_store(uri)
+    client = MlflowClient(uri)
+    exp = ensure_experiment(client, "window_size", uri)
+    for t, (code, seed, rr) in enumerate((("A", 0, 40.0), ("A", 1, 50.0), ("B", 0, 70.0))):
+        run = client.create_run(exp, start_time=1_000_000 + 1000 * t, run_name="window_size=3",
+                                tags={"experiment": "window_size", "config_hash": f"h{seed}", "profile": "cpu",
+                                      "git_sha": "c" * 40, "code_version": code})
+        for key, value in (("window_size", "3"), ("seed", str(seed)), ("encoder2d.name", "pri3d")):
+            client.log_param(run.info.run_id, key, value)
+        client.log_metric(run.info.run_id, "3DLoMatch/rr_5000", rr)
+        client.set_terminated(run.info.run_id, "FINISHED")
+    return root, uri
+
+
+@pytest.mark.parametrize("identity, mean, n_runs, rule", [
+    ("config_and_code", 70.0, 1, "Runs counted: same config and code (identity=config_and_code)"),
+    ("config", 60.0, 2, "Runs counted: same config (identity=config)"),
+])
+def test_the_identity_setting_picks_the_runs_of_a_cell_and_the_table_says_which(code_store, identity, mean, n_runs,
+                                                                                rule):
+    root, uri = code_store
+    out = root / identity
+    generate_report(_report_cfg(out, uri, tables=["window_size"], profile="cpu", identity=identity), base_dir=root)
+    df = pd.read_csv(out / "window_size.csv", dtype={"variant": str})
+    cell = df[(df["variant"] == "3x3") & (df["n_points"] == 5000)].iloc[0]
+    assert cell["ours_mean"] == pytest.approx(mean) and cell["n_runs"] == n_runs
+    md = (out / "window_size.md").read_text()
+    codes = "B (1 run)" if identity == "config_and_code" else "A (1 run), B (1 run)"
+    assert f"{rule}" in md and f"code versions behind the cells: {codes}." in md
+    assert f"`identity={identity}`" in (out / "README.md").read_text()
+
+
+def test_a_bad_identity_is_one_line_naming_the_setting(code_store):
+    from pcrcg.errors import ConfigError
+
+    root, uri = code_store
+    with pytest.raises(ConfigError, match="identity='code'"):
+        generate_report(_report_cfg(root / "bad", uri, tables=["window_size"], identity="code"), base_dir=root)
+
+
+def test_runs_recorded_before_the_code_version_tag_count_by_their_commit():
+    from pcrcg.report.tables import run_code
+
+    runs = pd.DataFrame({"tags.code_version": ["v1", None, None, None],
+                         "tags.git_sha": ["a" * 40, "b" * 40, "b" * 40, None],
+                         "tags.git_dirty": ["false", "false", "true", None]})
+    assert run_code(runs).tolist() == ["v1", "git bbbbbbb", "git bbbbbbb+dirty", "unrecorded"]

@@ -78,19 +78,19 @@ def test_both_sweeps_finish_and_train_once_under_the_cache_lock(sweeps):
 def test_the_checkpoint_cache_is_keyed_by_the_training_hash(sweeps, tiny_root):
     from pcrcg.config import load_run_config
     from pcrcg.models.train import read_checkpoint
-    from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash
+    from pcrcg.pipeline import train_key
+    from pcrcg.tracking.git import code_version
 
     overrides = [*COMMON, f"data.root={tiny_root}"]
-    key = config_hash(load_run_config(["+experiment=main_results", "features=deep", *overrides]), TRAIN_HASH_EXCLUDE)
-    assert config_hash(load_run_config(["+experiment=window_size", "window_size=11", *overrides]),
-                       TRAIN_HASH_EXCLUDE) == key
+    key = train_key(load_run_config(["+experiment=main_results", "features=deep", *overrides]))
+    assert train_key(load_run_config(["+experiment=window_size", "window_size=11", *overrides])) == key
     caches = sorted(p.name for p in (sweeps["root"] / "checkpoints").iterdir())
     assert caches == [key]
     cache = sweeps["root"] / "checkpoints" / key
     assert {"model.ckpt", "history.json", "source.json", ".lock"} <= {p.name for p in cache.iterdir()}
     main = _only_run(sweeps["uri"], "main_results")
-    assert json.loads((cache / "source.json").read_text()) == {"run_id": main.info.run_id,
-                                                              "experiment": "main_results", "train_hash": key}
+    assert json.loads((cache / "source.json").read_text()) == {"run_id": main.info.run_id, "experiment": "main_results",
+                                                              "train_hash": key, "code_version": code_version()}
     read_checkpoint(cache / "model.ckpt")  # a checkpoint of this project, read safely
     history = json.loads((cache / "history.json").read_text())
     assert [step for step, _ in history["train/loss"]] == [0, 1, 2, 3]  # the tiny profile's 4 steps

@@ -201,3 +201,108 @@ def test_config_hash_follows_the_weights_file_contents(tmp_path):
     for cfg in ({"encoder2d": {"name": "scratch", "weights": None}, "seed": 0},
                 {"encoder2d": {"name": "pri3d", "weights": str(tmp_path / "missing.pth")}, "seed": 0}):
         assert config_hash(cfg) == _sha16(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode())
+
+
+# --------------------------------------------------------------------------- run identity: config and code
+
+
+def test_how_many_processes_and_threads_do_the_work_is_left_out_of_both_hashes():
+    from pcrcg.config import load_run_config
+    from pcrcg.tracking.hashing import HASH_EXCLUDE
+
+    base = load_run_config(["profile=tiny"])
+    how = load_run_config(["profile=tiny", "data.workers=1", "trainer.num_threads=2", "profile.train.num_threads=2",
+                           "registration.ransac.threads=2"])
+    a, b = flat_params(base), flat_params(how)
+    assert {k for k in a if a[k] != b[k]} == {"data.workers", "trainer.num_threads", "profile.train.num_threads",
+                                              "registration.ransac.threads"}
+    for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
+        assert config_hash(how, exclude) == config_hash(base, exclude)
+    # the loader processes draw the training augmentations: their number changes the model
+    workers = load_run_config(["profile=tiny", "trainer.num_workers=2"])
+    assert config_hash(workers, TRAIN_HASH_EXCLUDE) != config_hash(base, TRAIN_HASH_EXCLUDE)
+
+
+def test_the_code_version_digests_the_code_that_computes_results(tmp_path):
+    from pcrcg.tracking.git import code_version
+
+    pkg = tmp_path / "pkg"
+    for rel, text in (("models/net.py", "x = 1\n"), ("report/tables.py", "y = 1\n"), ("resources/notes.txt", "z")):
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    version = code_version.__wrapped__  # not the per-process memo: the files change below
+    assert version(pkg) == _sha16(b"models/net.py 6\nx = 1\n")
+    (pkg / "report" / "tables.py").write_text("y = 2\n")  # tables, figures, benchmarks: the same code version
+    assert version(pkg) == _sha16(b"models/net.py 6\nx = 1\n")
+    (pkg / "models" / "net.py").write_text("x = 2\n")
+    assert version(pkg) == _sha16(b"models/net.py 6\nx = 2\n")
+
+
+def _identity_job(tmp_path, monkeypatch, code: str, *overrides: str):
+    """A classical run with the fake stages (tests/test_run_support.py) as if made by code version ``code``."""
+    import pcrcg.pipeline as pipeline
+    from pcrcg.config import load_run_config
+    from test_run_support import FAKES
+
+    monkeypatch.setattr(pipeline, "code_version", lambda: code)
+    cfg = load_run_config(["profile=tiny", "method=fpfh", "experiment_name=identity", "runtime.report_on_end=false",
+                           *FAKES, *overrides])
+    n = len(list(tmp_path.glob("out-*")))
+    return pipeline.run_job(cfg, pipeline.JobInfo(output_dir=tmp_path / f"out-{n}", base_dir=tmp_path,
+                                                  overrides=list(overrides), multirun=True))
+
+
+def test_the_skip_rule_follows_logger_identity(tmp_path, monkeypatch, capsys):
+    from pcrcg.errors import ConfigError
+    from test_run_support import tracked_runs
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    first = _identity_job(tmp_path, monkeypatch, "A")
+    assert first.status == "finished"
+    assert _identity_job(tmp_path, monkeypatch, "A").status == "skipped"  # same config, same code
+    capsys.readouterr()
+    again = _identity_job(tmp_path, monkeypatch, "B")  # the default, config_and_code: other code runs again
+    assert again.status == "finished" and again.config_hash == first.config_hash
+    assert f"run {first.run_id} with config hash {first.config_hash} FINISHED with other code" in capsys.readouterr().out
+    runs = {r.info.run_id: r.data.tags["code_version"] for r in tracked_runs(uri, "identity")}
+    assert runs == {first.run_id: "A", again.run_id: "B"}
+    # identity=config: a finished run of the same config counts, whatever code made it
+    skipped = _identity_job(tmp_path, monkeypatch, "C", "logger.identity=config")
+    assert (skipped.status, skipped.run_id) == ("skipped", again.run_id)
+    with pytest.raises(ConfigError, match="logger.identity='code'"):
+        _identity_job(tmp_path, monkeypatch, "C", "logger.identity=code")
+
+
+def test_the_checkpoint_cache_key_follows_logger_identity(tmp_path, monkeypatch):
+    import json
+
+    import pcrcg.models.train as train_module
+    import pcrcg.pipeline as pipeline
+    from pcrcg.config import load_run_config
+
+    def fake_train(cfg, *, data_root, out_dir, logger, device):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "fake.ckpt").write_bytes(b"weights")
+        return {"checkpoint": str(out_dir / "fake.ckpt")}
+
+    monkeypatch.setattr(train_module, "train", fake_train)
+    monkeypatch.setattr(train_module, "read_checkpoint", lambda path: None)
+
+    def train(code: str, *overrides: str):
+        monkeypatch.setattr(pipeline, "code_version", lambda: code)
+        cfg = load_run_config(["profile=tiny", "logger=none", *overrides])
+        ctx = pipeline.RunContext(cfg=cfg, job=pipeline.JobInfo(output_dir=tmp_path, base_dir=tmp_path),
+                                  out_dir=tmp_path, device="cpu")
+        out = pipeline.train_model(ctx)
+        return out.checkpoint.parent, out.reused, config_hash(cfg, TRAIN_HASH_EXCLUDE)
+
+    cache_a, reused, plain = train("A")
+    assert not reused and cache_a.name != plain
+    assert json.loads((cache_a / "source.json").read_text())["code_version"] == "A"
+    assert train("A")[:2] == (cache_a, True)
+    cache_b, reused, _ = train("B")  # config_and_code: a model of other code is another model
+    assert not reused and cache_b != cache_a
+    cache_c, reused, plain_c = train("C", "logger.identity=config")  # config: the training config alone
+    assert not reused and cache_c.name == plain_c == plain
+    assert train("D", "logger.identity=config")[:2] == (cache_c, True)

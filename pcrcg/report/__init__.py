@@ -21,6 +21,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.errors import ConfigError
+from pcrcg.tracking.git import DEFAULT_IDENTITY, IDENTITIES, same_code
 from pcrcg.report.orderings import StatsSettings, check_orderings
 from pcrcg.report.outcomes import OutcomeSource
 from pcrcg.report.plots import plot_coverage, plot_table_recall
@@ -38,6 +39,7 @@ class ReportResult:
     tracking_uri: str
     files: list[Path] = field(default_factory=list)
     tables: dict[str, FilledTable] = field(default_factory=dict)
+    identity: str = DEFAULT_IDENTITY
 
     @property
     def index(self) -> Path:
@@ -88,11 +90,14 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     profiles = {e: wanted or newest_profile(runs, e) for e in experiments}
 
     settings = StatsSettings.from_dict(c.get("stats"))
+    identity = c.get("identity", DEFAULT_IDENTITY)
+    if identity not in IDENTITIES:
+        raise ConfigError("identity", identity, " | ".join(IDENTITIES))
 
-    result = ReportResult(out_dir, uri)
+    result = ReportResult(out_dir, uri, identity=identity)
     with OutcomeSource(uri, base, runs) as source:
         for name in names:
-            table = fill_table(specs[name], runs, paper, profiles)
+            table = fill_table(specs[name], runs, paper, profiles, identity)
             table.orderings = check_orderings(table, source, settings)
             result.tables[name] = table
     for name, table in result.tables.items():
@@ -190,6 +195,10 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
                f"`{_store_text(result.tracking_uri, base)}`.")
     out.append("Open the runs: `mlflow ui --backend-store-uri <store>`; every cell lists its runs "
                "(run id, config hash, git sha, profile, seed), here and in the CSV files.")
+    out.append("Runs counted: " + ("the same config and code (`identity=config_and_code`): a cell's seeds come "
+                                   "from one code version, that of its newest run." if same_code(result.identity) else
+                                   "the same config (`identity=config`): a cell's seeds may come from different "
+                                   "code versions (each table lists them)."))
     out.append("")
     out.append("Paper trend kept: of the row pairs with both numbers, per column, how many we order as the paper "
                "does (signs only). Paper orderings beyond noise: of the orderings the table tests (`compare`), "

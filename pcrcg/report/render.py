@@ -183,6 +183,7 @@ def to_markdown(table: FilledTable) -> str:
     if table.protocol:
         out.append("Protocol of these runs: " + "; ".join(table.protocol))
         out.append("")
+    out += [table.identity_text(), ""]
     if table.fidelity:
         out.append("Settings of these runs that differ from the paper's text or its official code: "
                    + "; ".join(table.fidelity) + ".")

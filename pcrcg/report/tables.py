@@ -2,7 +2,8 @@
 
 Seeds are aggregated as mean and sample standard deviation; of several FINISHED runs of a
 cell with the same seed (the same config run again, or a config that changed since) the
-newest counts.
+newest counts. With ``identity=config_and_code`` (the default) a cell counts only the runs of one
+code version, that of its newest run; with ``identity=config`` its seeds may come from different code.
 A cell without a finished run carries the reason (failed with its error, not run with its
 reason, still running, no such run, or the row's own reason).
 """
@@ -18,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from pcrcg.report.spec import LOWER_IS_BETTER, Column, Row, TableSpec
+from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
 PAPER_CSV = Path(__file__).resolve().parents[1] / "resources" / "paper_tables.csv"
 PAPER_COLUMNS = ("table", "method", "variant", "benchmark", "metric", "n_points", "value")
@@ -81,6 +83,16 @@ class FilledTable:
     protocol: list[str] = field(default_factory=list)  # settings of the runs behind the cells
     orderings: list[Any] = field(default_factory=list)  # pcrcg.report.orderings.OrderingLine, one per tested ordering
     fidelity: list[str] = field(default_factory=list)  # settings of the runs that differ from the paper's text or code
+    identity: str = DEFAULT_IDENTITY  # which runs counted as the same: config_and_code | config
+    codes: dict[str, int] = field(default_factory=dict)  # code version -> runs of it behind the cells
+
+    def identity_text(self) -> str:
+        """Which runs a cell counts, and the code versions behind the table."""
+        rule = ("same config and code (identity=config_and_code): each cell counts the runs of one code version, "
+                "its newest run's" if same_code(self.identity) else
+                "same config (identity=config): each cell's seeds may come from different code versions")
+        codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
+        return f"Runs counted: {rule}; code versions behind the cells: {codes}."
 
     def cell(self, row: Row, col: Column) -> Cell:
         for c in self.cells:
@@ -129,11 +141,28 @@ def _paper_value(paper: pd.DataFrame, table: str, row: Row, col: Column) -> floa
     return float(sel.iloc[0]["value"]) if len(sel) else None
 
 
-def _newest_per_seed(df: pd.DataFrame) -> pd.DataFrame:
-    """One run per seed: the newest (a config that changed since keeps only its latest run)."""
+def run_code(df: pd.DataFrame) -> pd.Series:
+    """Each run's code: its ``code_version`` tag; a run recorded before that tag, ``git <sha>`` (``+dirty``
+    when its tree had uncommitted changes); ``unrecorded`` without either."""
+    code = pd.Series("unrecorded", index=df.index, dtype=object)
+    if "tags.git_sha" in df.columns:
+        dirty = df["tags.git_dirty"] if "tags.git_dirty" in df.columns else pd.Series("false", index=df.index)
+        git = "git " + df["tags.git_sha"].astype(str).str[:7] + dirty.map(lambda d: "+dirty" if d == "true" else "")
+        code = code.where(df["tags.git_sha"].isna(), git)
+    if "tags.code_version" in df.columns:
+        code = code.where(df["tags.code_version"].isna(), df["tags.code_version"])
+    return code
+
+
+def _newest_per_seed(df: pd.DataFrame, identity: str = DEFAULT_IDENTITY) -> pd.DataFrame:
+    """One run per seed: the newest (a config that changed since keeps only its latest run); under
+    ``config_and_code`` only among the runs of the newest run's code version."""
     key = "params.seed" if "params.seed" in df.columns else "tags.config_hash"
     if df.empty or key not in df.columns:
         return df
+    if same_code(identity):
+        code = run_code(df)
+        df = df[code == code.loc[df["start_time"].idxmax()]]
     return df.sort_values("start_time").groupby(key, dropna=False, sort=False).tail(1)
 
 
@@ -169,10 +198,11 @@ def _no_value_reason(done: pd.DataFrame, col: Column) -> str:
 
 
 def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
-               profiles: Mapping[str, str | None]) -> FilledTable:
+               profiles: Mapping[str, str | None], identity: str = DEFAULT_IDENTITY) -> FilledTable:
     """Every cell of ``spec`` from ``runs`` (see module docstring).
 
-    ``profiles``: experiment -> the profile whose runs count (None: any).
+    ``profiles``: experiment -> the profile whose runs count (None: any). ``identity``: ``config_and_code``
+    or ``config`` (module docstring).
     """
     cells: list[Cell] = []
     coverage: dict[str, tuple[float, float, int]] = {}
@@ -190,7 +220,7 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
                 cell.reason = row.reason
                 continue
             cand = row_runs[match(row_runs, col.where)] if col.where else row_runs
-            done = _newest_per_seed(cand[cand["status"] == "FINISHED"])
+            done = _newest_per_seed(cand[cand["status"] == "FINISHED"], identity)
             if done.empty:
                 cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof)
                 continue
@@ -216,7 +246,7 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             cell.std = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
         cov_col = "metrics.color_coverage"
         if cov_col in row_runs.columns:
-            done = _newest_per_seed(row_runs[row_runs["status"] == "FINISHED"])
+            done = _newest_per_seed(row_runs[row_runs["status"] == "FINISHED"], identity)
             vals = [float(v) for v in done[cov_col] if v is not None and not math.isnan(float(v))]
             if vals:
                 coverage[row.text] = (float(np.mean(vals)), float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0,
@@ -226,7 +256,9 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
     from pcrcg.report.fidelity import fidelity_lines
 
     fidelity = fidelity_lines(runs[runs["run_id"].isin(used)]) if used else []
-    return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity)
+    codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
+    return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity,
+                       identity=identity, codes={str(c): int(n) for c, n in codes.items()})
 
 
 def _values(df: pd.DataFrame, col: str) -> list[str]:

@@ -1,8 +1,10 @@
 """Config identity: the resolved config as plain data, its hash, and its flattened params.
 
 Two jobs with the same hash compute the same thing, so a finished run with that hash
-makes a new one unnecessary. Keys that only say *where* or *how* a run is recorded
-(tracking, output paths, device, the MLflow experiment it is filed under) are left out.
+makes a new one unnecessary (with ``logger.identity=config_and_code``, the default, only when the code
+version is also the same: :func:`pcrcg.tracking.git.code_version`). Keys that only say *where* or *how*
+a run is recorded or computed (tracking, output paths, device, the MLflow experiment it is filed under,
+processes and threads) are left out.
 """
 
 from __future__ import annotations
@@ -15,9 +17,13 @@ from typing import Any, Iterable, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-# top-level keys that do not change what a run computes
-# (profile.pretrain2d: the 2D pretraining's own sizes; a run reads only the weights file it is given)
-HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d")
+# keys that do not change what a run computes
+# (profile.pretrain2d: the 2D pretraining's own sizes; a run reads only the weights file it is given;
+# data.workers, trainer.num_threads (and the profile's value it follows), registration.ransac.threads: how many
+# processes / CPU threads do the work. trainer.num_workers stays: the loader processes draw the augmentations)
+HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d",
+                                 "data.workers", "trainer.num_threads", "profile.train.num_threads",
+                                 "registration.ransac.threads")
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 

@@ -35,6 +35,7 @@ _MAX_TAG_LEN = 5000
 TAG_EXPERIMENT = "experiment"
 TAG_HASH = "config_hash"
 TAG_GIT = "git_sha"
+TAG_CODE = "code_version"
 TAG_PROFILE = "profile"
 TAG_ERROR = "error"
 TAG_ERROR_TYPE = "error_type"
@@ -107,11 +108,13 @@ class RunTracker:
         self.experiment_id = ensure_experiment(self.client, experiment_name, uri)
 
     # ------------------------------------------------------------------ lookup
-    def find_finished(self, config_hash: str) -> FinishedRun | None:
-        """The newest FINISHED run of this experiment whose ``config_hash`` tag is ``config_hash``."""
+    def find_finished(self, config_hash: str, code_version: str | None = None) -> FinishedRun | None:
+        """The newest FINISHED run of this experiment whose ``config_hash`` tag is ``config_hash`` (and, when
+        given, whose ``code_version`` tag is ``code_version``)."""
+        code = f" and tags.{TAG_CODE} = '{code_version}'" if code_version is not None else ""
         runs = self.client.search_runs(
             [self.experiment_id],
-            filter_string=f"tags.{TAG_HASH} = '{config_hash}' and attributes.status = 'FINISHED'",
+            filter_string=f"tags.{TAG_HASH} = '{config_hash}' and attributes.status = 'FINISHED'{code}",
             max_results=1,
             order_by=["attributes.start_time DESC"],
         )
