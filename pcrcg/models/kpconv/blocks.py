@@ -67,10 +67,42 @@ def _conv_inputs(pyr: TensorPyramid, layer: int, strided: bool):
     return pyr.points[layer], pyr.points[layer], pyr.neighbors[layer]
 
 
-def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
-    """Max of the features of each row of ``inds`` (shadow rows give 0): x (N, C), inds (M, H) -> (M, C)."""
+def max_pool_reference(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
+    """Max of the features of each row of ``inds`` (shadow rows give 0): x (N, C), inds (M, H) -> (M, C).
+
+    The plain autograd version (its backward builds an (M, H, C) zero tensor and scatters it back
+    with an accumulating index_put); :func:`max_pool` computes the same."""
     x = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
     return x[inds].max(dim=1).values
+
+
+class _MaxPool(torch.autograd.Function):
+    """Forward as :func:`max_pool_reference`; the backward adds each output's gradient to the support
+    its maximum came from (the first maximum on ties, as autograd's max), without (M, H, C) tensors."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        x_pad = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
+        values, arg = x_pad[inds].max(dim=1)
+        if ctx.needs_input_grad[0]:
+            ctx.save_for_backward(inds.gather(1, arg))  # (M, C): the support of each maximum
+            ctx.n = x.shape[0]
+        return values
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        (src,) = ctx.saved_tensors
+        out = grad.new_zeros((ctx.n + 1, grad.shape[1]))
+        out.scatter_add_(0, src, grad)
+        return out[:-1], None
+
+
+def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
+    """Max of the features of each row of ``inds`` (shadow rows give 0): x (N, C), inds (M, H) -> (M, C).
+
+    Same values and, to float rounding (the order of the additions), same gradient as
+    :func:`max_pool_reference` (``tests/test_speed_equivalence.py``)."""
+    return _MaxPool.apply(x, inds)
 
 
 class SimpleBlock(nn.Module):

@@ -6,17 +6,68 @@ For a query q with support neighbours p_j (features f_j) and kernel points x_k (
 
 ``n_q`` is the number of real (non-shadow) neighbours (Predator's normalisation; set
 ``normalize=False`` for the original KPConv sum).
+
+Two implementations compute this sum (:func:`set_implementation` / :func:`implementation`):
+
+* ``dense`` (:func:`kpconv`, the reference): gathers the padded neighbour features (M, H, C) and
+  multiplies them by the influences (M, K, H);
+* ``sparse`` (:mod:`pcrcg.models.kpconv.aggregation`): one sparse matrix of the non-shadow
+  influences per level and batch, shared by the level's convolutions; the same sums in another
+  order (outputs and gradients equal to float rounding), faster on the CPU.
+
+``auto`` (the default) takes ``sparse`` for float32/float64 features on the CPU and ``dense``
+elsewhere (GPUs, half precision, positions that require a gradient).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+from typing import Iterator
 
 import torch
 from torch import nn
 from torch.profiler import record_function
 
+from pcrcg.models.kpconv.aggregation import KernelAggregation, kpconv_sparse
 from pcrcg.models.kpconv.kernel_points import kernel_points as make_kernel_points
+
+IMPLEMENTATIONS = ("auto", "sparse", "dense")
+_IMPLEMENTATION = "auto"
+
+
+def set_implementation(name: str) -> str:
+    """Select how :class:`KPConv` layers compute (``auto`` | ``sparse`` | ``dense``, see the module
+    docstring) for the whole process; returns the previous setting."""
+    global _IMPLEMENTATION
+    if name not in IMPLEMENTATIONS:
+        raise ValueError(f"KPConv implementation {name!r}; known: {', '.join(IMPLEMENTATIONS)}")
+    prev, _IMPLEMENTATION = _IMPLEMENTATION, name
+    return prev
+
+
+def get_implementation() -> str:
+    return _IMPLEMENTATION
+
+
+@contextlib.contextmanager
+def implementation(name: str) -> Iterator[None]:
+    """``with implementation("dense"): ...`` runs the block with that KPConv implementation."""
+    prev = set_implementation(name)
+    try:
+        yield
+    finally:
+        set_implementation(prev)
+
+
+def _use_sparse(name: str, q_pts: torch.Tensor, s_pts: torch.Tensor, feats: torch.Tensor) -> bool:
+    if name == "dense":
+        return False
+    if q_pts.requires_grad or s_pts.requires_grad:  # the sparse path treats positions as constants
+        return False
+    if name == "sparse":
+        return True
+    return feats.device.type == "cpu" and feats.dtype in (torch.float32, torch.float64)
 
 
 def kernel_influence(q_pts: torch.Tensor, s_pts: torch.Tensor, neighbors: torch.Tensor, kernel: torch.Tensor,
@@ -90,11 +141,22 @@ class KPConv(nn.Module):
         """q_pts (M, 3), s_pts (N, 3), neighbors (M, H), feats (N, C) -> (M, O).
 
         ``cache``: a dict living as long as the inputs (one batch); convolutions with the same
-        neighbours, kernel and extent then share one influence tensor.
+        neighbours, kernel and extent then share one influence tensor (``dense``) or one
+        :class:`KernelAggregation` (``sparse``).
         """
+        if _use_sparse(_IMPLEMENTATION, q_pts, s_pts, feats):
+            key = ("sparse", id(neighbors), id(q_pts), self._kernel_sig, round(self.extent, 9))
+            agg = cache.get(key) if cache is not None else None
+            if agg is None:
+                with record_function("pcrcg.kpconv.kernel_weights"):
+                    agg = KernelAggregation(q_pts, s_pts, neighbors, self.kernel, self.extent)
+                if cache is not None:
+                    cache[key] = agg
+            with record_function("pcrcg.kpconv.aggregate_and_weights"):
+                return kpconv_sparse(feats, agg, self.weights, self.normalize)
         infl = None
         if cache is not None:
-            key = (id(neighbors), id(q_pts), self._kernel_sig, round(self.extent, 9))
+            key = ("dense", id(neighbors), id(q_pts), self._kernel_sig, round(self.extent, 9))
             infl = cache.get(key)
             if infl is None:
                 with torch.no_grad(), record_function("pcrcg.kpconv.kernel_weights"):

@@ -1,0 +1,196 @@
+"""The fast paths of the training step against the implementations they replace, on fixed inputs:
+the sparse KPConv aggregation (``pcrcg.models.kpconv.aggregation``) against the dense reference
+(``kpconv``), layer by layer and through a whole Predator forward + backward; outputs and gradients
+must agree to float rounding (float64: to ~1e-12, i.e. the same sums in another order)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pcrcg.models.datamodule import PairCollate
+from pcrcg.models.kpconv import (
+    KernelAggregation,
+    KPConv,
+    PyramidSpec,
+    calibrate_limits,
+    get_implementation,
+    implementation,
+    kernel_points,
+    kpconv,
+    kpconv_sparse,
+    radius_neighbors,
+)
+from pcrcg.models.kpconv.blocks import max_pool, max_pool_reference
+from pcrcg.models.kpconv.conv import kernel_influence
+from pcrcg.models.predator import build_predator
+from pcrcg.models.toy import toy_pair
+
+
+def _geometry(seed: int, n: int = 300, strided: bool = False, dtype=np.float32):
+    """Supports, queries (every 3rd support when strided) and radius neighbours with shadow padding."""
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(0, 1, (n, 3))
+    q = s[::3] + rng.normal(0, 0.01, (len(s[::3]), 3)) if strided else s
+    nb = radius_neighbors(q, s, 0.2, 24)
+    assert (nb == n).any() and (nb < n).any()  # shadows and real neighbours are both exercised
+    return torch.from_numpy(q.astype(dtype)), torch.from_numpy(s.astype(dtype)), torch.from_numpy(nb)
+
+
+def _both(q, s, nb, kernel, extent, feats, weights, normalize=True):
+    """(output, grad feats, grad weights) of the dense reference and of the sparse path."""
+    res = []
+    g = torch.randn(q.shape[0], weights.shape[2], dtype=feats.dtype, generator=torch.Generator().manual_seed(9))
+    for sparse in (False, True):
+        f, w = feats.clone().requires_grad_(True), weights.clone().requires_grad_(True)
+        if sparse:
+            out = kpconv_sparse(f, KernelAggregation(q, s, nb, kernel, extent), w, normalize)
+        else:
+            out = kpconv(q, s, nb, f, kernel, w, extent, normalize)
+        (out * g).sum().backward()
+        res.append((out.detach(), f.grad, w.grad))
+    return res
+
+
+@pytest.mark.parametrize("strided", [False, True])
+@pytest.mark.parametrize("normalize", [True, False])
+def test_sparse_kpconv_equals_dense_reference_float64(strided, normalize):
+    q, s, nb = _geometry(1, strided=strided, dtype=np.float64)
+    kernel = torch.from_numpy(kernel_points(15, 0.15, 0).astype(np.float64))
+    gen = torch.Generator().manual_seed(0)
+    feats = torch.randn(s.shape[0], 5, dtype=torch.float64, generator=gen)
+    weights = torch.randn(15, 5, 7, dtype=torch.float64, generator=gen)
+    (o1, f1, w1), (o2, f2, w2) = _both(q, s, nb, kernel, 0.12, feats, weights, normalize)
+    assert o1.abs().max() > 0.1 and f1.abs().max() > 0.1  # not trivially zero
+    for a, b in ((o1, o2), (f1, f2), (w1, w2)):
+        torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("strided", [False, True])
+def test_sparse_kpconv_equals_dense_reference_float32(strided):
+    q, s, nb = _geometry(2, strided=strided)
+    kernel = torch.from_numpy(kernel_points(15, 0.15, 0))
+    gen = torch.Generator().manual_seed(1)
+    feats, weights = torch.randn(s.shape[0], 8, generator=gen), torch.randn(15, 8, 8, generator=gen)
+    (o1, f1, w1), (o2, f2, w2) = _both(q, s, nb, kernel, 0.12, feats, weights)
+    for a, b in ((o1, o2), (f1, f2), (w1, w2)):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5 * float(a.abs().max()))
+
+
+def test_sparse_influences_are_the_reference_bit_for_bit_and_the_matrices_valid():
+    q, s, nb = _geometry(3, strided=True)
+    kernel = torch.from_numpy(kernel_points(15, 0.15, 0))
+    agg = KernelAggregation(q, s, nb, kernel, 0.12)
+    ref = kernel_influence(q, s, nb, kernel, 0.12)  # (M, H, K)
+    m, h = nb.shape
+    dense = torch.full((m, s.shape[0] + 1, 15), float("nan"))
+    dense[torch.arange(m).unsqueeze(1).expand(m, h), nb] = ref
+    got = dense[agg._rows.long(), agg._cols.long()]  # (E, K) of the real (query, support) pairs
+    assert torch.equal(got.t(), agg._infl_t)
+    assert agg._rows.numel() == int((nb < s.shape[0]).sum())  # exactly the real neighbours
+    torch.testing.assert_close(agg.count, (nb < s.shape[0]).sum(1))
+    for mat in (agg.forward_matrix(torch.float32), agg.backward_matrix(torch.float32)):
+        # sorted, distinct columns per row, in range: torch's CSR invariants (raises otherwise)
+        torch.sparse_csr_tensor(mat.crow_indices(), mat.col_indices(), mat.values(), mat.shape,
+                                check_invariants=True)
+    # the transpose is the transpose
+    m_, k_, n_ = agg.shape
+    fwd = agg.forward_matrix(torch.float32).to_dense().view(k_, m_, n_).transpose(0, 1).reshape(m_ * k_, n_)
+    torch.testing.assert_close(agg.backward_matrix(torch.float32).to_dense(), fwd.t())
+
+
+def test_sparse_kpconv_queries_without_neighbours_and_empty_inputs():
+    q, s, nb = _geometry(4)
+    nb = nb.clone()
+    nb[:5] = s.shape[0]  # five queries see only shadows
+    kernel = torch.from_numpy(kernel_points(15, 0.15, 0))
+    gen = torch.Generator().manual_seed(2)
+    feats, weights = torch.randn(s.shape[0], 4, generator=gen), torch.randn(15, 4, 3, generator=gen)
+    (o1, f1, w1), (o2, f2, w2) = _both(q, s, nb, kernel, 0.12, feats, weights)
+    assert torch.equal(o2[:5], torch.zeros(5, 3))
+    for a, b in ((o1, o2), (f1, f2), (w1, w2)):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5)
+    empty = torch.zeros((0, nb.shape[1]), dtype=torch.long)
+    out = kpconv_sparse(feats, KernelAggregation(q[:0], s, empty, kernel, 0.12), weights)
+    assert out.shape == (0, 3)
+    all_shadow = torch.full((3, 4), s.shape[0], dtype=torch.long)
+    f = feats.clone().requires_grad_(True)
+    out = kpconv_sparse(f, KernelAggregation(q[:3], s, all_shadow, kernel, 0.12), weights)
+    out.sum().backward()
+    assert torch.equal(out, torch.zeros(3, 3)) and torch.equal(f.grad, torch.zeros_like(feats))
+
+
+def test_layer_implementation_switch_and_auto_choice():
+    q, s, nb = _geometry(5)
+    torch.manual_seed(0)
+    layer = KPConv(4, 6, radius=0.15, extent=0.12)
+    x = torch.randn(s.shape[0], 4)
+    assert get_implementation() == "auto"
+    outs, keys = {}, {}
+    for name in ("dense", "sparse", "auto"):
+        cache: dict = {}
+        with implementation(name):
+            outs[name] = layer(q, s, nb, x, cache)
+        keys[name] = {k[0] for k in cache}
+    assert get_implementation() == "auto"  # restored
+    assert keys == {"dense": {"dense"}, "sparse": {"sparse"}, "auto": {"sparse"}}  # auto: sparse on the CPU
+    torch.testing.assert_close(outs["sparse"], outs["dense"], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError):
+        with implementation("fused"):
+            pass
+
+
+def test_max_pool_equals_reference_with_gradients():
+    rng = np.random.default_rng(6)
+    x = torch.from_numpy(rng.normal(size=(50, 6)).astype(np.float32))
+    x[7] = x[3]  # ties: the first maximum gets the gradient, in both
+    inds = torch.from_numpy(rng.integers(0, 51, (30, 8)))  # 50 = shadow (zero feature)
+    inds[0] = 50
+    g = torch.from_numpy(rng.normal(size=(30, 6)).astype(np.float32))
+    res = []
+    for fn in (max_pool_reference, max_pool):
+        xx = x.clone().requires_grad_(True)
+        out = fn(xx, inds)
+        (out * g).sum().backward()
+        res.append((out.detach(), xx.grad))
+    assert torch.equal(res[0][0], res[1][0])
+    torch.testing.assert_close(res[1][1], res[0][1], rtol=1e-6, atol=1e-6)
+    assert res[0][1].abs().sum() > 0
+
+
+@pytest.fixture(scope="module")
+def toy_batch():
+    s = toy_pair(1, size=(2.0, 1.6, 1.5), density=100.0)
+    spec = PyramidSpec(0.12, 3, 2.5)
+    spec = PyramidSpec(0.12, 3, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
+    return PairCollate(spec, overlap_radius=0.18)([s])
+
+
+def test_predator_forward_and_backward_equal_with_dense_and_sparse_kpconv(toy_batch):
+    """The whole network (encoder, strided blocks, attention, decoder) on a toy pair, twice, in
+    float64 (its normalisations amplify float32 rounding to ~1e-4 of the largest gradients)."""
+    cfg = dict(voxel_size=0.12, num_layers=3, first_dim=16, final_dim=8, gnn_dim=16, num_heads=2, dgcnn_k=4)
+    torch.manual_seed(0)
+    net = build_predator(cfg, in_dim=1).double()
+    pyr = toy_batch.pyramid
+    pyr64 = type(pyr)([p.double() for p in pyr.points], pyr.neighbors, pyr.pools, pyr.upsamples, pyr.lengths)
+    n0 = pyr.points[0].shape[0]
+    feats = torch.ones(n0, 1, dtype=torch.float64)
+    res = {}
+    for name in ("dense", "sparse"):
+        pyr64.cache.clear()
+        net.zero_grad()
+        with implementation(name):
+            out = net(feats, pyr64)
+            weights = torch.linspace(-1, 1, n0, dtype=torch.float64)
+            loss = (out.descriptors[:, 0] * weights).sum() + out.overlap_logits.square().mean()
+            loss.backward()
+        res[name] = (out, {k: p.grad.clone() for k, p in net.named_parameters() if p.grad is not None})
+    (od, gd), (os_, gs) = res["dense"], res["sparse"]
+    for a, b in ((od.descriptors, os_.descriptors), (od.overlap_logits, os_.overlap_logits),
+                 (od.matchability_logits, os_.matchability_logits)):
+        torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-10)
+    assert gd.keys() == gs.keys() and any("encoder.0.conv" in k for k in gd)
+    for k in gd:
+        torch.testing.assert_close(gs[k], gd[k], rtol=1e-8, atol=1e-9 * max(1.0, float(gd[k].abs().max())))
