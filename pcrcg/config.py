@@ -559,6 +559,11 @@ def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
 
     _check_group_rules(data)
     check_mirrors(data)  # views / projection.views, eval.ransac_distance / registration.ransac.distance, ...
+    model = data.get("model") if isinstance(data.get("model"), Mapping) else {}
+    if model.get("name") == "geotransformer":  # its sizes and radii, before data are prepared (no torch import)
+        from pcrcg.models.geotransformer.config import GeoTransformerConfig
+
+        GeoTransformerConfig.from_mapping(model)
     if top.icp_init == "learned" and top.method not in ICP_METHODS:
         raise ConfigError("icp_init", top.icp_init, f"identity unless method is {_fmt(ICP_METHODS)}")
     feats = _group_name(data, "features")

@@ -291,9 +291,9 @@ class PCRCGModule(L.LightningModule):
     @torch.no_grad()
     def predict_pair(self, batch: PairBatch) -> PairOutput:
         """Outputs of both fragments in their own frames (un-doing any augmentation of the batch)."""
-        out, coverage = self(batch)
         if self.kind == "geotransformer":
-            return self._predict_geotransformer(batch, out, coverage)
+            return self._predict_geotransformer(batch)
+        out, coverage = self(batch)
         ns = batch.n_src
         pts = batch.pyramid.points[0]
         to_np = lambda t: t.detach().float().cpu().numpy()  # noqa: E731
@@ -310,9 +310,13 @@ class PCRCGModule(L.LightningModule):
         T = np.linalg.inv(A_t) @ batch.transform.double().cpu().numpy() @ A_s
         return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage)
 
-    def _predict_geotransformer(self, batch: PairBatch, out: Any, coverage: float) -> PairOutput:
+    def _predict_geotransformer(self, batch: PairBatch) -> PairOutput:
         """Level-1 points with unit fine features (overlap: their superpoint's matching score,
-        matchability 1) and the local-to-global registration, all in the fragments' own frames."""
+        matchability 1) and the local-to-global registration, all in the fragments' own frames
+        (the network never sees the batch's transform here)."""
+        with record_function("pcrcg.input_features (2D encoder + lifting)"):
+            feats, coverage = self.input_features(batch)
+        out = self.net(feats, batch.pyramid)
         to_np = lambda t: t.detach().double().cpu().numpy()  # noqa: E731
         A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
         inv_s, inv_t = np.linalg.inv(A_s), np.linalg.inv(A_t)

@@ -1,17 +1,31 @@
 """GeoTransformer (geometric transformer + optimal-transport point matching + local-to-global
 registration) on the project's KPConv, one module per concept:
 
-* :mod:`.config`: settings (radii in voxels); :mod:`.model`: the network (KPConv-FPN backbone,
-  superpoints, point matching, ``register``);
+* :mod:`.config`: settings (radii in voxels; imports no torch, so the run's config check reads it);
+  :mod:`.model`: the network (KPConv-FPN backbone, superpoints, point matching, ``register``);
 * :mod:`.embedding`: the geometric structure embedding; :mod:`.transformer`: self / cross attention;
 * :mod:`.superpoints`: patches, ground-truth overlaps, superpoint matching, training targets;
 * :mod:`.transport`: Sinkhorn with a dustbin; :mod:`.lgr`: point pairs and local-to-global registration;
 * :mod:`.loss`: overlap-aware circle loss and point-matching loss.
+
+Names are imported lazily (``from pcrcg.models.geotransformer import build_geotransformer``).
 """
 
-from pcrcg.models.geotransformer.config import GeoLossConfig, GeoTransformerConfig
-from pcrcg.models.geotransformer.loss import geotransformer_loss
-from pcrcg.models.geotransformer.model import GeoOutput, GeoTransformer, build_geotransformer
+from __future__ import annotations
 
-__all__ = ["GeoLossConfig", "GeoTransformerConfig", "GeoOutput", "GeoTransformer", "build_geotransformer",
-           "geotransformer_loss"]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "GeoLossConfig": "config", "GeoTransformerConfig": "config", "geotransformer_loss": "loss",
+    "GeoOutput": "model", "GeoTransformer": "model", "build_geotransformer": "model",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"pcrcg.models.geotransformer.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'pcrcg.models.geotransformer' has no attribute {name!r}")
+
+
+__all__ = sorted(_EXPORTS)
