@@ -62,7 +62,7 @@ def test_defaults_compose_and_validate(conf):
         # groups: an option that does not exist names the ones that do
         (["data=kitti"], "data", "synthmatch"),
         (["profile=huge"], "profile", "cpu, official, paper, tiny"),
-        (["model=geotransformer"], "model", "predator"),
+        (["model=cofinet"], "model", "predator"),
         (["encoder2d=resnet"], "encoder2d", "imagenet, pri3d, scratch"),
         (["features=normals"], "features", "deep, disk, none, rgb, sift"),
         (["projection=orthographic"], "projection", "explicit, implicit, none"),
@@ -153,6 +153,27 @@ def test_ddp_preset_composes(conf):
     assert cfg.trainer.accelerator == "gpu" and cfg.trainer.devices == 4
     assert cfg.trainer.strategy.startswith("ddp") and cfg.trainer.num_nodes == 1
     assert cfg.trainer.max_epochs == cfg.profile.train.max_epochs
+
+
+def test_the_gpu_trainer_is_the_default_one_with_two_keys_changed(conf):
+    default = load_run_config(["profile=paper"], conf).trainer
+    gpu = load_run_config(["profile=paper", "trainer=gpu"], conf).trainer
+    a, b = OmegaConf.to_container(default), OmegaConf.to_container(gpu)  # as written, interpolations unresolved
+    assert {k for k in a.keys() | b.keys() if a.get(k) != b.get(k)} == {"accelerator", "num_workers"}
+    assert (gpu.accelerator, gpu.num_workers) == ("gpu", 4)
+
+
+@pytest.mark.parametrize("name", ["run", "prepare", "evaluate", "pretrain2d", "report"])
+def test_every_entry_point_keeps_the_start_folder_and_writes_under_outputs(conf, name):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        hydra_cfg = compose(config_name=name, return_hydra_config=True).hydra
+    assert hydra_cfg.job.chdir is False
+    folder = OmegaConf.to_container(hydra_cfg.run)["dir"].replace("${hydra.job.config_name}", hydra_cfg.job.config_name)
+    assert folder.startswith(f"outputs/{name}/") and folder.endswith("/${now:%Y-%m-%d_%H-%M-%S}")
 
 
 def test_group_options_lists_option_files(conf):
