@@ -15,6 +15,14 @@ the profile's voxel, said so in the output):
 * peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU);
 * ``breakdown=true``: the training step by stage (torch.profiler over the model's labelled scopes).
 
+``compare=true`` (the default) times the training step and inference twice, interleaved step by
+step in one process: ``old`` with the previous gathers (``pcrcg.models.kpconv`` implementation
+``dense``: padded neighbour gathers, the reference max-pool backward) and ``new`` with the default
+(``auto``: the sparse aggregation on the CPU), and prints both side by side with the speed-up and
+the largest difference of the two inferences' descriptors (float rounding only). Every step starts
+from an empty per-batch KPConv cache, as in a run, where every batch is a new pair. Wall time
+(median) and the process's CPU time (median, steadier on a shared machine) are both given.
+
 Each profile runs in its own process so that the peak memory is its own.
 """
 
@@ -33,6 +41,29 @@ import numpy as np
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 REPO = CONF.parent
+
+
+def _interleaved(step: Callable[[Any], Any], batches: list, reps: int) -> dict[str, tuple[float, float]]:
+    """Median (wall, process CPU) seconds of ``step(batch)`` under each of :data:`IMPLS`, the
+    implementations taking turns on every batch (``reps`` rounds over the batches, after a warm-up)."""
+    from pcrcg.models.kpconv import implementation
+
+    wall: dict[str, list[float]] = {k: [] for k in IMPLS}
+    cpu: dict[str, list[float]] = {k: [] for k in IMPLS}
+    for r in range(reps + 1):
+        for b in batches:
+            for name, impl in IMPLS.items():
+                with implementation(impl):
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    step(b)
+                    if r:  # round 0 warms up
+                        wall[name].append(time.perf_counter() - t0)
+                        cpu[name].append(time.process_time() - c0)
+    return {k: (float(np.median(wall[k])), float(np.median(cpu[k]))) for k in IMPLS}
+
+
+# the two implementations compare=true times: the previous gathers and today's default
+IMPLS = {"old": "dense", "new": "auto"}
 
 
 def _time(fn: Callable[[], Any], reps: int) -> float:
@@ -99,7 +130,8 @@ def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
 
 
 def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
-                  color: str = "none", breakdown: bool = False, model: str = "predator") -> dict[str, Any]:
+                  color: str = "none", breakdown: bool = False, model: str = "predator",
+                  compare: bool = True) -> dict[str, Any]:
     import torch
 
     from pcrcg.models.datamodule import AugmentConfig, PairCollate
@@ -144,10 +176,8 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
 
-    it = iter(range(10**9))
-
-    def train_step():
-        b = batches[next(it) % len(batches)]
+    def train_on(b):
+        b.pyramid.cache.clear()  # a run's every batch is a new pair: nothing of the last step is reused
         loss = module.training_step(b, 0)
         if loss is not None:
             opt.zero_grad()
@@ -155,16 +185,27 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
             opt.step()
         sync()
 
-    def infer_step():
-        b = batches[next(it) % len(batches)]
+    def infer_on(b):
+        b.pyramid.cache.clear()
         module.predict_pair(b)
         sync()
 
+    it = iter(range(10**9))
+    compared: dict[str, Any] = {}
     module.train()
-    s_train = _time(train_step, reps * len(batches))
+    if compare:
+        compared["train"] = _interleaved(train_on, batches, reps)
+        s_train = compared["train"]["new"][0]
+    else:
+        s_train = _time(lambda: train_on(batches[next(it) % len(batches)]), reps * len(batches))
     stages = _breakdown(module, opt, batches, sync, reps) if breakdown else None
     module.eval()
-    s_infer = _time(infer_step, reps * len(batches))
+    if compare:
+        compared["infer"] = _interleaved(infer_on, batches, reps)
+        s_infer = compared["infer"]["new"][0]
+        compared["max_output_diff"] = _max_output_diff(module, batches)
+    else:
+        s_infer = _time(lambda: infer_on(batches[next(it) % len(batches)]), reps * len(batches))
     n0 = [int(b.pyramid.lengths[0].sum()) for b in batches]
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
@@ -175,8 +216,28 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
         "train_s_per_pair": s_train, "infer_s_per_pair": s_infer, "optimizer": type(opt).__name__,
         "peak_mem_mb": peak, "peak_mem_kind": "cuda allocated" if device.startswith("cuda") else "process RSS",
-        "torch_threads": torch.get_num_threads(), "stages_ms_per_step": stages,
+        "torch_threads": torch.get_num_threads(), "stages_ms_per_step": stages, "old_vs_new": compared or None,
     }
+
+
+def _max_output_diff(module, batches) -> float:
+    """Largest |old - new| over the descriptors, overlap and matchability of the batches' inference."""
+    import torch
+
+    from pcrcg.models.kpconv import implementation
+
+    worst = 0.0
+    for b in batches:
+        outs = []
+        for impl in IMPLS.values():
+            b.pyramid.cache.clear()
+            with implementation(impl), torch.no_grad():
+                o = module.predict_pair(b)
+            outs.append(np.concatenate([np.concatenate([f.descriptors, f.overlap[:, None], f.matchability[:, None]], 1)
+                                        for f in (o.src, o.tgt)]))
+        worst = max(worst, float(np.abs(outs[0] - outs[1]).max()))
+    b.pyramid.cache.clear()
+    return worst
 
 
 def _breakdown(module, opt, batches, sync, reps: int) -> dict[str, float]:
@@ -190,6 +251,7 @@ def _breakdown(module, opt, batches, sync, reps: int) -> dict[str, float]:
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         for k in range(n):
             b = batches[k % len(batches)]
+            b.pyramid.cache.clear()
             with record_function("step.forward + losses"):
                 loss = module.training_step(b, 0)
             if loss is None:
@@ -211,7 +273,8 @@ def _parse(argv: list[str]) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     args = {"profiles": ["tiny", "cpu"], "models": ["predator", "geotransformer"], "pairs": 4, "reps": 3,
-            "device": "cpu", "threads": 1, "root": None, "color": "none", "child": False, "breakdown": False}
+            "device": "cpu", "threads": 1, "root": None, "color": "none", "child": False, "breakdown": False,
+            "compare": True}
     for a in argv:
         k, _, v = a.partition("=")
         if k not in args:
@@ -236,6 +299,14 @@ def _print(row: dict[str, Any]) -> None:
     print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + {row['optimizer']})")
     print(f"  inference      {row['infer_s_per_pair']:.3f} s/pair")
     print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
+    cmp = row.get("old_vs_new")
+    if cmp:
+        print("  old vs new (KPConv gathers: dense reference | sparse default), interleaved, median s/pair:")
+        for k, label in (("train", "training step"), ("infer", "inference")):
+            (ow, oc), (nw, nc) = cmp[k]["old"], cmp[k]["new"]
+            print(f"    {label:<14s} wall  old {ow:.3f}  new {nw:.3f}  ({ow / nw:.2f}x)   "
+                  f"cpu  old {oc:.3f}  new {nc:.3f}  ({oc / nc:.2f}x)")
+        print(f"    outputs: largest |old - new| over descriptors, overlap, matchability = {cmp['max_output_diff']:.1e}")
     if row.get("stages_ms_per_step"):
         print("  training step by stage (torch.profiler, ms per step; stages include their children):")
         for k, v in row["stages_ms_per_step"].items():
@@ -249,14 +320,15 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     torch.set_num_threads(int(args["threads"]))
     if args["child"]:
         row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
-                            args["root"], str(args["color"]), bool(args["breakdown"]), str(args["models"][0]))
+                            args["root"], str(args["color"]), bool(args["breakdown"]), str(args["models"][0]),
+                            bool(args["compare"]))
         print("@@" + json.dumps(row))
         return [row]
     rows = []
     for p in args["profiles"]:
         for model in args["models"]:  # each in its own process: its own peak memory
             cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", f"models=[{model}]", "child=true"]
-            cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown")]
+            cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown", "compare")]
             if args["root"]:
                 cmd.append(f"root={args['root']}")
             res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})

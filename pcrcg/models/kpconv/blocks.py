@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from pcrcg.models.kpconv.conv import KPConv
+from pcrcg.models.kpconv.conv import KPConv, get_implementation
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
@@ -101,7 +101,10 @@ def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
     """Max of the features of each row of ``inds`` (shadow rows give 0): x (N, C), inds (M, H) -> (M, C).
 
     Same values and, to float rounding (the order of the additions), same gradient as
-    :func:`max_pool_reference` (``tests/test_speed_equivalence.py``)."""
+    :func:`max_pool_reference` (``tests/test_speed_equivalence.py``), which the KPConv implementation
+    ``dense`` (the previous code, :func:`pcrcg.models.kpconv.conv.implementation`) uses."""
+    if get_implementation() == "dense":
+        return max_pool_reference(x, inds)
     return _MaxPool.apply(x, inds)
 
 
