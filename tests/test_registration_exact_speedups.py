@@ -82,7 +82,7 @@ def test_ransac_pruned_equals_reference(seed, max_validation):
     rng, src, tgt, corr = _clouds(seed, inlier_ratio=[0.5, 0.2, 0.08, 0.03][seed])
     kw = dict(max_validation=max_validation, confidence=1.0 if max_validation else 0.999, max_iterations=20000)
     ref = ransac(src, tgt, corr, RansacConfig(prune=False, **kw), seed=seed)
-    new = ransac(src, tgt, corr, RansacConfig(prune=True, **kw), seed=seed)
+    new = ransac(src, tgt, corr, RansacConfig(prune=True, prune_min_points=0, **kw), seed=seed)
     assert np.array_equal(ref.transform, new.transform)
     assert (ref.iterations, ref.n_checked, ref.n_inliers) == (new.iterations, new.n_checked, new.n_inliers)
 
@@ -112,9 +112,39 @@ def test_pipeline_results_do_not_change(mutual, fewer_points, monkeypatch):
             monkeypatch.undo()
         cfg = RegistrationConfig(fewer_points=fewer_points, mutual=mutual,
                                  ransac=RansacConfig(max_validation=1000, confidence=1.0, max_iterations=10000,
-                                                     prune=new))
+                                                     prune=new, prune_min_points=0))
         results[new] = [register_features(a, b, n, cfg, seed=n) for n in (2000, 500)]
     for r0, r1 in zip(results[False], results[True]):
         assert np.array_equal(r0.transform, r1.transform)
         assert np.array_equal(r0.correspondences, r1.correspondences)
         assert (r0.ransac.iterations, r0.ransac.n_checked) == (r1.ransac.iterations, r1.ransac.n_checked)
+
+
+def test_pruned_score_only_from_prune_min_points_with_the_same_results(monkeypatch):
+    """The pruned scorer runs for sources of at least ``prune_min_points`` points, the reference below;
+    the results are the same either way."""
+    used = []
+
+    def recording(init, name):
+        def wrapped(self, *args, **kwargs):
+            used.append(name)
+            init(self, *args, **kwargs)
+        return wrapped
+
+    for cls in (_OverlapScore, _PrunedOverlapScore):
+        monkeypatch.setattr(cls, "__init__", recording(cls.__init__, cls.__name__))
+    _, src, tgt, corr = _clouds(6, n=1200, inlier_ratio=0.2)
+    kw = dict(max_validation=500, confidence=1.0, max_iterations=5000)
+    results = {}
+    for label, cfg in (("default", RansacConfig(**kw)), ("forced", RansacConfig(prune_min_points=1000, **kw)),
+                       ("off", RansacConfig(prune=False, **kw))):
+        used.clear()
+        results[label] = (ransac(src, tgt, corr, cfg, seed=3), set(used))
+    assert RansacConfig().prune_min_points == 2000
+    assert results["default"][1] == {"_OverlapScore"}  # 1200 < 2000 points
+    assert results["forced"][1] == {"_PrunedOverlapScore"}
+    assert results["off"][1] == {"_OverlapScore"}
+    for label in ("default", "forced"):
+        r, ref = results[label][0], results["off"][0]
+        assert np.array_equal(r.transform, ref.transform)
+        assert (r.iterations, r.n_checked, r.n_inliers) == (ref.iterations, ref.n_checked, ref.n_inliers)

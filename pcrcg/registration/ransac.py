@@ -77,6 +77,11 @@ class RansacConfig:
     prune: with ``score="overlap"`` on CPU, skip the rest of a hypothesis' overlap score once it can
     no longer win, and score repeated points once (the same chosen hypothesis; ``False``: score
     every point of every hypothesis, the reference).
+    prune_min_points: the pruned score only for a source of at least this many points (the sampled
+    N): below, its chunked queries cost more than they save. Either scorer gives the same results.
+    Measured (scorer alone, 6 simulated pairs of ~7k-point fragments, N sampled with replacement,
+    Open3D 0.10 budget, reference / pruned time): N = 5000 1.06x, 2500 1.10x, 1000 0.88x, 500 0.80x,
+    250 0.69x; on model outputs of ~3k-point fragments N = 5000 gains ~3x (repeats).
     """
 
     distance: float = 0.05
@@ -92,6 +97,7 @@ class RansacConfig:
     score: str = "overlap"
     max_validation: int | None = None
     prune: bool = True
+    prune_min_points: int = 2000
 
     def __post_init__(self) -> None:
         if self.distance <= 0:
@@ -366,7 +372,8 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     sim2 = cfg.edge_length**2
     overlap = None
     if cfg.score == "overlap":
-        scorer = _PrunedOverlapScore if cfg.prune and dev.type == "cpu" else _OverlapScore
+        pruned = cfg.prune and dev.type == "cpu" and len(src_points) >= cfg.prune_min_points
+        scorer = _PrunedOverlapScore if pruned else _OverlapScore
         overlap = scorer(np.asarray(src_points, dtype=np.float64) - cs,
                          np.asarray(tgt_points, dtype=np.float64) - cq, cfg.distance, dtype, dev)
 
