@@ -22,7 +22,7 @@ from pcrcg.models.kpconv import (
     kpconv_sparse,
     radius_neighbors,
 )
-from pcrcg.models.kpconv.blocks import max_pool, max_pool_reference
+from pcrcg.models.kpconv.blocks import PointNorm, max_pool, max_pool_reference, normalize_channels
 from pcrcg.models.kpconv.conv import kernel_influence
 from pcrcg.models.predator import build_predator
 from pcrcg.models.toy import toy_pair
@@ -157,6 +157,31 @@ def test_max_pool_equals_reference_with_gradients():
     assert torch.equal(res[0][0], res[1][0])
     torch.testing.assert_close(res[1][1], res[0][1], rtol=1e-6, atol=1e-6)
     assert res[0][1].abs().sum() > 0
+
+
+@pytest.mark.parametrize("dims", [(0,), (0, 1)])
+def test_channel_normalisation_equals_var_mean_reference(dims):
+    gen = torch.Generator().manual_seed(3)
+    x = (torch.randn(400, 10, 6, dtype=torch.float64, generator=gen) * 5 + 3)[:, :, :] if dims == (0, 1) else (
+        torch.randn(700, 6, dtype=torch.float64, generator=gen) * 5 + 3)
+    g = torch.randn(x.shape, dtype=torch.float64, generator=gen)
+    res = {}
+    for name in ("dense", "auto"):
+        xx = x.clone().requires_grad_(True)
+        with implementation(name):
+            y = normalize_channels(xx, dims, 1e-5)
+        (y * g).sum().backward()
+        res[name] = (y.detach(), xx.grad)
+    for a, b in zip(res["dense"], res["auto"]):
+        torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12)
+    # and what it is: zero mean, unit variance per channel
+    y = res["auto"][0]
+    torch.testing.assert_close(y.mean(dims), torch.zeros(6, dtype=torch.float64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(y.var(dims, unbiased=False), torch.ones(6, dtype=torch.float64), rtol=1e-6, atol=0)
+    x32 = x.float()
+    with implementation("dense"):
+        ref = PointNorm(6)(x32.reshape(-1, 6))
+    torch.testing.assert_close(PointNorm(6)(x32.reshape(-1, 6)), ref, rtol=1e-5, atol=1e-5)
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from torch.profiler import record_function
 
 from pcrcg.errors import ConfigError
 from pcrcg.models.encoder import kpconv_encoder, run_encoder
-from pcrcg.models.kpconv.blocks import LastUnaryBlock, NearestUpsampleBlock, PointNorm, UnaryBlock
+from pcrcg.models.kpconv.blocks import LastUnaryBlock, NearestUpsampleBlock, PointNorm, UnaryBlock, normalize_channels
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
@@ -106,8 +106,7 @@ def edge_features(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 
 def _edge_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
     """Per-channel normalisation over all (point, neighbour) entries: (N, k, C) -> (N, k, C)."""
-    var, mean = torch.var_mean(x, dim=(0, 1), unbiased=False, keepdim=True)
-    return (x - mean) * torch.rsqrt(var + eps)
+    return normalize_channels(x, (0, 1), eps)
 
 
 class SelfAttentionGraph(nn.Module):
