@@ -111,6 +111,9 @@ def test_the_second_sweep_reuses_the_first_sweeps_model(sweeps):
     # main_results' PCR-CG row and window_size 11 are one config filed under two tables: same hash, and
     # the same model on the same pairs gives the same estimates, byte for byte
     assert main.data.tags["config_hash"] == window.data.tags["config_hash"]
+    from pcrcg.tracking.git import code_version
+
+    assert main.data.tags["code_version"] == window.data.tags["code_version"] == code_version()
     estimates = {}
     for name in ("main", "window"):
         (status,) = sweeps[f"status_{name}"]
