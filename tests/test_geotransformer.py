@@ -335,3 +335,17 @@ def test_training_on_one_pair_learns_to_register_it():
     p1, rre1, rte1 = check()
     assert p0 < 0.2 and rre0 > 20  # untrained: random superpoint matches, no registration
     assert p1 > 0.4 and rre1 < 5.0 and rte1 < 0.15
+
+
+def test_report_reads_lgr_recall_and_keeps_geotransformers_own_loss_scale():
+    import pandas as pd
+
+    from pcrcg.report.fidelity import fidelity_lines
+    from pcrcg.report.spec import Column
+
+    assert Column("3DLoMatch", "RR").keys() == ("3DLoMatch/rr", "3DLoMatch/rr_lgr", "3DLoMatch/rr_5000")
+    base = {"run_id": "r1", "experiment": "geotransformer", "status": "FINISHED", "tags.profile": "cpu",
+            "params.method": "learned", "params.model.loss.log_scale": "24"}
+    geo = " | ".join(fidelity_lines(pd.DataFrame([{**base, "params.model.name": "geotransformer"}])))
+    pred = " | ".join(fidelity_lines(pd.DataFrame([{**base, "params.model.name": "predator"}])))
+    assert "circle-loss scale 24" in pred and "circle-loss" not in geo  # 24 is GeoTransformer's own setting

@@ -37,6 +37,11 @@ def _learned(rec: Mapping) -> bool:
     return _param(rec, "method") in (None, "learned") or _param(rec, "icp_init") == "learned"
 
 
+def _predator(rec: Mapping) -> bool:
+    """A learned Predator-based run (GeoTransformer's settings are its own: its circle-loss scale is 24)."""
+    return _learned(rec) and _param(rec, "model.name") in (None, "predator")
+
+
 @dataclass(frozen=True)
 class Setting:
     """One setting: its logged key, the value of the paper's text and of the official code (as logged
@@ -68,7 +73,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("registration.fewer_points", "small fragments", None, "with_replacement",
             {"with_replacement": "fragments with fewer than N points resampled with replacement",
              "whole": "fragments with fewer than N points used whole"}),
-    Setting("model.loss.log_scale", "circle-loss scale", None, "16", {}, _learned),
+    Setting("model.loss.log_scale", "circle-loss scale", None, "16", {}, _predator),
     Setting("projection.combine", "several views", "mean", "overwrite",
             {"overwrite": "several views: the first that sees a point gives its feature",
              "mean": "several views: features averaged"}, lambda r: _color(r) and _learned(r)),
