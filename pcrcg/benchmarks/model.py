@@ -17,8 +17,8 @@ the profile's voxel, said so in the output):
 
 ``compare=true`` (the default) times the training step and inference twice, interleaved step by
 step in one process: ``old`` with the previous gathers (``pcrcg.models.kpconv`` implementation
-``dense``: padded neighbour gathers, the reference max-pool backward) and ``new`` with the default
-(``auto``: the sparse aggregation on the CPU), and prints both side by side with the speed-up and
+``dense``: padded neighbour gathers, the reference max-pool backward, ``torch.var_mean`` norms) and
+``new`` with the default (``auto``: the sparse aggregation on the CPU, two-pass norms), and prints both side by side with the speed-up and
 the largest difference of the two inferences' descriptors (float rounding only). Every step starts
 from an empty per-batch KPConv cache, as in a run, where every batch is a new pair. Wall time
 (median) and the process's CPU time (median, steadier on a shared machine) are both given.
@@ -301,7 +301,7 @@ def _print(row: dict[str, Any]) -> None:
     print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
     cmp = row.get("old_vs_new")
     if cmp:
-        print("  old vs new (KPConv gathers: dense reference | sparse default), interleaved, median s/pair:")
+        print("  old vs new (KPConv implementation dense = previous code | auto), interleaved, median s/pair:")
         for k, label in (("train", "training step"), ("infer", "inference")):
             (ow, oc), (nw, nc) = cmp[k]["old"], cmp[k]["new"]
             print(f"    {label:<14s} wall  old {ow:.3f}  new {nw:.3f}  ({ow / nw:.2f}x)   "

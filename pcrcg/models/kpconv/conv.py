@@ -17,6 +17,12 @@ Two implementations compute this sum (:func:`set_implementation` / :func:`implem
 
 ``auto`` (the default) takes ``sparse`` for float32/float64 features on the CPU and ``dense``
 elsewhere (GPUs, half precision, positions that require a gradient).
+
+``dense`` is also the switch to the previous code of the other fast paths of the KPConv blocks,
+so that one setting reproduces the old network step for comparisons
+(``python -m pcrcg.benchmarks.model``): the max-pool's autograd backward
+(:func:`pcrcg.models.kpconv.blocks.max_pool_reference`) and ``torch.var_mean`` in the point and
+edge normalisations (:func:`pcrcg.models.kpconv.blocks.normalize_channels`).
 """
 
 from __future__ import annotations
