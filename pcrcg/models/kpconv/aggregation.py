@@ -113,6 +113,7 @@ class KernelAggregation:
                 values = self._infl_t.t()[order].reshape(-1)
                 st = _csr(crow, col.reshape(-1), values, (n, m * k))
                 self._St[st.dtype] = st
+                self._infl_t = self._rows = self._cols = None  # only needed to build S^T
         if dtype not in self._St:
             self._St[dtype] = next(iter(self._St.values())).to(dtype)
         return self._St[dtype]
