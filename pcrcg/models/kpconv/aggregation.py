@@ -10,15 +10,18 @@ The same sums are a linear map of the support features,
 
     weighted[m, k, :] = sum_h influence[m, h, k] * feats[neighbors[m, h], :]
 
-that is one sparse matrix ``S`` of shape (K * M, N) holding only the non-zero influences of real
-neighbours. :class:`KernelAggregation` builds ``S`` once per (queries, neighbours, kernel, extent)
+that is one sparse matrix ``S`` of shape (K * M, N) holding the influences of the real (non-shadow)
+neighbours only (zero influences are kept: compacting them away cost more than it saved here). :class:`KernelAggregation` builds ``S`` once per (queries, neighbours, kernel, extent)
 and batch: every convolution of a level shares it, as they shared the influences. The forward is
 ``S @ feats`` and the backward ``S^T @ grad`` with a precomputed transpose (built on the first
 backward), both MKL sparse-dense products on the CPU: no (M, H, C) tensor and no scatter-add.
+Indices are int32 (what MKL takes: int64 ones were converted at every product). Measured at the
+cpu profile (one thread, level 0 of a pair: 9.7k queries, 244k real neighbour pairs): building ``S``
+with the influences 16-20 ms against 21-29 ms for the reference's influences alone; ``S^T`` ~12-20
+ms; a product 4-6 ms against 15-18 ms for the reference's gather + product + backward.
 
 What is computed is unchanged: the influences are the reference's formula on the same numbers
-(bit for bit), and a term dropped from a sum is an exact zero (a shadow's zero feature or a zero
-influence). Only the order in which the remaining terms are added differs, so outputs and
+(bit for bit), and a term dropped from a sum is an exact zero (a shadow's zero feature). Only the order in which the remaining terms are added differs, so outputs and
 gradients agree with the reference to float rounding (``tests/test_speed_equivalence.py``).
 """
 
