@@ -22,7 +22,7 @@ from pcrcg.models.kpconv import (
     kpconv_sparse,
     radius_neighbors,
 )
-from pcrcg.models.kpconv.blocks import PointNorm, max_pool, max_pool_reference, normalize_channels
+from pcrcg.models.kpconv.blocks import PointNorm, max_over_neighbours, max_pool, max_pool_reference, normalize_channels
 from pcrcg.models.kpconv.conv import kernel_influence
 from pcrcg.models.predator import build_predator
 from pcrcg.models.toy import toy_pair
@@ -157,6 +157,29 @@ def test_max_pool_equals_reference_with_gradients():
     assert torch.equal(res[0][0], res[1][0])
     torch.testing.assert_close(res[1][1], res[0][1], rtol=1e-6, atol=1e-6)
     assert res[0][1].abs().sum() > 0
+
+
+def test_max_over_neighbours_is_max_values_bit_for_bit_with_ties():
+    gen = torch.Generator().manual_seed(7)
+    x = torch.randn(40, 6, 5, generator=gen)
+    x[3, 4] = x[3, 1]  # a tie: the first maximum gets the gradient
+    x[5, :, 2] = 0.0  # a whole column tied
+    x[3, 1] = x[3].max(0).values + 1.0
+    x[3, 4] = x[3, 1]
+    g = torch.randn(40, 5, generator=gen)
+    res = []
+    for fn in (lambda t: t.max(dim=1).values, max_over_neighbours):
+        xx = x.clone().requires_grad_(True)
+        out = fn(xx)
+        (out * g).sum().backward()
+        res.append((out.detach(), xx.grad))
+    assert torch.equal(res[0][0], res[1][0]) and torch.equal(res[0][1], res[1][1])
+    assert res[1][1][3, 1].abs().sum() > 0 and res[1][1][3, 4].abs().sum() == 0
+    with torch.no_grad():
+        assert torch.equal(max_over_neighbours(x), x.max(dim=1).values)
+    inds = torch.randint(0, 41, (30, 7), generator=gen)
+    with torch.no_grad():  # max_pool's inference path
+        assert torch.equal(max_pool(x[:, 0], inds), max_pool_reference(x[:, 0], inds))
 
 
 @pytest.mark.parametrize("dims", [(0,), (0, 1)])

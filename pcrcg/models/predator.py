@@ -26,7 +26,14 @@ from torch.profiler import record_function
 
 from pcrcg.errors import ConfigError
 from pcrcg.models.encoder import kpconv_encoder, run_encoder
-from pcrcg.models.kpconv.blocks import LastUnaryBlock, NearestUpsampleBlock, PointNorm, UnaryBlock, normalize_channels
+from pcrcg.models.kpconv.blocks import (
+    LastUnaryBlock,
+    NearestUpsampleBlock,
+    PointNorm,
+    UnaryBlock,
+    max_over_neighbours,
+    normalize_channels,
+)
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
@@ -123,8 +130,8 @@ class SelfAttentionGraph(nn.Module):
     def forward(self, coords: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """coords (N, 3), x (N, C) -> (N, C)."""
         idx = knn_indices(coords, self.k)
-        x1 = F.leaky_relu(_edge_norm(self.conv1(edge_features(x, idx))), 0.2).max(dim=1).values
-        x2 = F.leaky_relu(_edge_norm(self.conv2(edge_features(x1, idx))), 0.2).max(dim=1).values
+        x1 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv1(edge_features(x, idx))), 0.2))
+        x2 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv2(edge_features(x1, idx))), 0.2))
         return F.leaky_relu(self.norm3(self.conv3(torch.cat([x, x1, x2], dim=-1))), 0.2)
 
 

@@ -94,6 +94,32 @@ def max_pool_reference(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
     return x[inds].max(dim=1).values
 
 
+class _MaxOverDim1(torch.autograd.Function):
+    """``x.max(dim=1).values`` with the values from ``amax`` (one vectorised pass: ~20x faster than
+    the indexed reduction for (N, k, C) inputs on the CPU) and the indices found only for the
+    backward, which is then autograd's own: the gradient goes to the first maximum."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        if ctx.needs_input_grad[0]:
+            ctx.save_for_backward(x)
+        return x.amax(dim=1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        (x,) = ctx.saved_tensors
+        idx = x.max(dim=1).indices.unsqueeze(1)
+        return torch.zeros_like(x).scatter_(1, idx, grad.unsqueeze(1))
+
+
+def max_over_neighbours(x: torch.Tensor) -> torch.Tensor:
+    """Max over dim 1 of (N, k, C) -> (N, C): the values and gradient of ``x.max(dim=1).values``, bit
+    for bit (the KPConv implementation ``dense`` runs that reference)."""
+    if get_implementation() == "dense":
+        return x.max(dim=1).values
+    return _MaxOverDim1.apply(x)
+
+
 class _MaxPool(torch.autograd.Function):
     """Forward as :func:`max_pool_reference`; the backward adds each output's gradient to the support
     its maximum came from (the first maximum on ties, as autograd's max), without (M, H, C) tensors."""
@@ -123,6 +149,8 @@ def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
     ``dense`` (the previous code, :func:`pcrcg.models.kpconv.conv.implementation`) uses."""
     if get_implementation() == "dense":
         return max_pool_reference(x, inds)
+    if not (torch.is_grad_enabled() and x.requires_grad):  # inference: the values only, in one pass
+        return torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)[inds].amax(dim=1)
     return _MaxPool.apply(x, inds)
 
 
