@@ -147,7 +147,8 @@ def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
     Same values and, to float rounding (the order of the additions), same gradient as
     :func:`max_pool_reference` (``tests/test_speed_equivalence.py``), which the KPConv implementation
     ``dense`` (the previous code, :func:`pcrcg.models.kpconv.conv.implementation`) uses."""
-    if get_implementation() == "dense":
+    if get_implementation() == "dense" or x.device.type != "cpu":
+        # off the CPU the reference: scatter_add_ is non-deterministic on CUDA, index_put_ is not
         return max_pool_reference(x, inds)
     if not (torch.is_grad_enabled() and x.requires_grad):  # inference: the values only, in one pass
         return torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)[inds].amax(dim=1)
