@@ -140,6 +140,9 @@ def test_invalid_profile_values_name_the_setting(tmp_path):
         prepare_dataset(tiny_data_cfg(tmp_path / "x", "profile.synth.n_test=3"), log=lambda m: None)
     with pytest.raises(ConfigError, match="data.fusion.bogus"):
         prepare_dataset(tiny_data_cfg(tmp_path / "x", "+data.fusion.bogus=1"), log=lambda m: None)
+    for bad in ("[0.6,0.3]", "[0.2]", "[0.2,1.5]", "abc"):
+        with pytest.raises(ConfigError, match="data.synth.outward_radius"):
+            prepare_dataset(tiny_data_cfg(tmp_path / "x", f"+profile.synth.outward_radius={bad}"), log=lambda m: None)
     assert not (tmp_path / "x").exists()
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from pcrcg.data.fusion import FusionConfig, fuse_frames
 from pcrcg.data.pairs import info_from_points, info_matrix, overlap_ratio, voxel_downsample
-from pcrcg.data.synth.camera import camera_path
+from pcrcg.data.synth.camera import ScanConfig, ScanPath, camera_path
 from pcrcg.data.synth.render import RoomRenderer, SensorModel
 from pcrcg.data.synth.scene import Panel, Room, make_room
 from pcrcg.data.synth.textures import FAMILIES, Texture, image_texture, random_texture
@@ -125,6 +125,27 @@ def test_camera_path_moves_at_hand_held_speeds_inside_the_free_space(seed):
     for P in poses[::50]:
         R = P[:3, :3]
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_sweeping_scan_goes_back_and_forth_over_an_arc(seed):
+    """sweep_deg: the loop angle swings +-sweep_deg about a middle that drifts at drift_deg_s, so the
+    operator passes over the same part of the room again and again; 0 goes round (v5)."""
+    room = make_room(np.random.default_rng(seed))
+    t = np.arange(0, 66.7, 1 / 30)
+    sweep = ScanPath(room, np.random.default_rng(seed), ScanConfig(turn_rate_deg=10, sweep_deg=60, drift_deg_s=2))
+    loop = ScanPath(room, np.random.default_rng(seed), ScanConfig(turn_rate_deg=10, sweep_deg=0))
+    th = sweep._theta(t)
+    middle = sweep.theta0 + sweep.direction * np.radians(2.0) * t
+    off = np.degrees(th - middle)
+    assert np.abs(off).max() <= 60 + 1e-9 and np.abs(off).max() > 45  # the whole arc is swept
+    turns = np.sum(np.diff(np.sign(np.diff(th))) != 0)
+    assert turns >= 2  # back, forth and back again in a 40-fragment scan
+    assert np.all(np.diff(loop._theta(t)) * loop.direction > 0)  # v5: round and round, never back
+    # the same hand: speed along the arc never beyond the loop's, and the sweep keeps the heading's range
+    assert np.abs(np.diff(th - middle)).max() <= np.abs(np.diff(loop._theta(t))).max() + 1e-12
+    poses = sweep.pose(t[::10])
+    assert np.all(np.isfinite(poses)) and room.is_walkable(poses[:, :2, 3]).mean() > 0.7
 
 
 def test_fusion_of_a_plane_lies_on_the_plane():

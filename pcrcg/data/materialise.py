@@ -30,7 +30,7 @@ from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
 from pcrcg.errors import ConfigError, DataError
 
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 SOURCES = ("synthmatch", "redkitchen", "threedmatch")
 
 
@@ -54,6 +54,13 @@ def _dc(cls, cfg: Mapping[str, Any] | None, setting: str):
         if kind == "bool":
             if not isinstance(value, bool):
                 raise ConfigError(where, value, "true or false")
+            continue
+        if kind == "tuple[float, float]":  # a range [lo, hi] of fractions
+            ok = (isinstance(value, (list, tuple)) and len(value) == 2
+                  and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value))
+            if not (ok and 0 <= value[0] <= value[1] <= 1):
+                raise ConfigError(where, value, "[lo, hi] with 0 <= lo <= hi <= 1")
+            cfg[key] = (float(value[0]), float(value[1]))
             continue
         if kind == "int" and (isinstance(value, bool) or not isinstance(value, int)):
             raise ConfigError(where, value, "an integer")

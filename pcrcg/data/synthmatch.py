@@ -45,6 +45,9 @@ class SynthConfig:
     walk_speed: float = 0.25  # m/s at most
     turn_rate_deg: float = 20.0  # deg/s the view turns on average
     inward_share: float = 0.5  # scans circling the central table (their fragments all overlap a lot)
+    sweep_deg: float = 0.0  # back and forth along +-sweep_deg of the loop (camera.ScanConfig); 0: round it
+    drift_deg_s: float = 2.0  # how fast the middle of that sweep moves on
+    outward_radius: tuple[float, float] = (0.15, 0.35)  # outward loops' radius, share of the floor's reach
     shadows: bool = True
 
 
@@ -124,7 +127,9 @@ def _render_attempt(layout: Layout, index: int, seed: int, cfg: SynthConfig, sen
     n_frames = cfg.fragments_per_scene * cfg.frames_per_fragment
     dt = cfg.fragment_seconds / cfg.frames_per_fragment
     path = ScanPath(room, rng, ScanConfig(walk_speed=cfg.walk_speed, turn_rate_deg=cfg.turn_rate_deg,
-                                               inward_share=cfg.inward_share))
+                                          inward_share=cfg.inward_share, sweep_deg=cfg.sweep_deg,
+                                          drift_deg_s=cfg.drift_deg_s,
+                                          outward_radius=tuple(cfg.outward_radius)))
     times = np.arange(n_frames) * dt
     poses = path.pose(times)
     K = intrinsics_for(cfg.width, cfg.height)

@@ -9,7 +9,8 @@ tremor at the frame rate. The path is a smooth function of time, so poses can be
 instant: the camera's pose during an exposure gives the motion blur.
 
 Speeds are those of real scans: about 0.15-0.35 m/s walking and 10-30 deg/s turning; a
-3DMatch fragment (50 frames at 30 fps) spans 1.7 s of it.
+3DMatch fragment (50 frames at 30 fps) spans 1.7 s of it. With ``sweep_deg`` the operator goes
+back and forth along an arc of the loop instead of round it (``ScanConfig``).
 """
 
 from __future__ import annotations
@@ -53,6 +54,16 @@ class ScanConfig:
     height: tuple[float, float] = (1.25, 1.65)
     tremor: float = 0.003  # m, hand shake
     inward_share: float = 0.5  # share of scans that circle the central table, looking inwards
+    # back and forth: the operator sweeps along an arc of +-sweep_deg of the loop (slowing at its
+    # ends) whose middle drifts at drift_deg_s, as real scans go over the same counters again from
+    # about the same side; 0: round and round the loop (generator v5, whose low-overlap pairs were
+    # mostly the two sides of a table or room: median relative rotation 110-120 deg against real
+    # 3DLoMatch's 52 deg)
+    sweep_deg: float = 0.0
+    drift_deg_s: float = 2.0
+    # outward scans: the loop's radius as a share of the free floor's reach from the middle (drawn
+    # in this range); larger loops translate more along a sweep (real 3DLoMatch pairs: 1.6 m apart)
+    outward_radius: tuple[float, float] = (0.15, 0.35)
 
 
 class ScanPath:
@@ -83,7 +94,7 @@ class ScanPath:
         kern = np.array([0.1, 0.2, 0.4, 0.2, 0.1])
         reach = np.convolve(np.concatenate([reach[-2:], reach, reach[:2]]), kern, "valid")  # circular smoothing
         # inwards: round the table at arm's length beyond its edge; outwards: near the middle
-        self.reach = np.minimum(reach * 0.8, rng.uniform(1.2, 1.8)) if self.inward else reach * rng.uniform(0.15, 0.35)
+        self.reach = np.minimum(reach * 0.8, rng.uniform(1.2, 1.8)) if self.inward else reach * rng.uniform(*cfg.outward_radius)
         self.pts = pts
         self.direction = float(rng.choice([-1.0, 1.0]))
         self.theta0 = rng.uniform(0, 2 * np.pi)
@@ -101,7 +112,12 @@ class ScanPath:
 
     def _theta(self, t: np.ndarray) -> np.ndarray:
         # progress with a varying pace (never backwards): integral of omega * (1 + 0.6 s(t))
-        return self.theta0 + self.direction * self.omega * (t + 0.6 * self._integral(self.s_speed, t))
+        u = self.omega * (t + 0.6 * self._integral(self.s_speed, t))
+        if self.cfg.sweep_deg <= 0:
+            return self.theta0 + self.direction * u
+        a = np.radians(self.cfg.sweep_deg)
+        middle = self.theta0 + self.direction * np.radians(self.cfg.drift_deg_s) * t
+        return middle + self.direction * a * np.sin(u / a)
 
     @staticmethod
     def _integral(s: _Smooth, t: np.ndarray) -> np.ndarray:

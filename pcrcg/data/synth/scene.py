@@ -26,6 +26,13 @@ __all__ = ["Panel", "Room", "make_room", "ROOM_TYPES"]
 
 ROOM_TYPES = ("kitchen", "office", "bedroom", "living", "conference", "corridor")
 CELL = 0.05  # occupancy grid (m)
+# How full a room is (generator v6: rooms as cluttered as 3DMatch's; v5's sparser rooms left the
+# low-overlap pairs floor and wall, which geometry cannot register):
+WALL_GAP_P = 0.04          # chance of a free stretch of wall at each step along it (v5: 0.1)
+INTERIOR_RATE = 2.5        # Poisson mean per unit rate of the interior plan (v5: 1.5)
+TOP_CLUTTER = (1.2, 2.4)   # density range of the small things on every top (v5: 0.8-1.8)
+FLOOR_CLUTTER = (("carton", 10.0), ("plant", 2.0), ("bin", 1.2), ("chair", 2.0), ("lamp", 0.6))  # v5: 6, 1.5, 0.8, 1, 0
+POSTERS_PER_M = 0.7        # posters, pictures and notices per metre of wall (v5: 0.45)
 
 
 @dataclass
@@ -238,7 +245,7 @@ def _place_along_walls(room: Room, rng, walls: list[Wall], floor: Floor, rtype: 
     for wall in walls:
         s = rng.uniform(0.05, 0.6)
         while s < wall.length - 0.4:
-            if rng.random() < 0.1:
+            if rng.random() < WALL_GAP_P:
                 s += rng.uniform(0.3, 1.0)
                 continue
             kind = str(rng.choice(names, p=p))
@@ -263,9 +270,9 @@ def _place_along_walls(room: Room, rng, walls: list[Wall], floor: Floor, rtype: 
                     if floor.free(Mc, 0.5, 0.5, 0.0):
                         room.panels += F.chair(rng, Mc).panels
                         floor.take(Mc, 0.5, 0.5, 0.9)
-                s += w + rng.uniform(0.02, 0.3)
+                s += w + rng.uniform(0.0, 0.15)
             else:
-                s += 0.3
+                s += 0.15
 
 
 def _random_spot(rng, floor: Floor, w: float, d: float, margin: float, tries: int = 30) -> np.ndarray | None:
@@ -290,7 +297,7 @@ def _place_interior(room: Room, rng, floor: Floor, rtype: str, tops: list) -> No
         "corridor": [("plant", 0.5), ("bin", 0.5), ("carton", 1.0)],
     }[rtype]
     for what, rate in plan:
-        for _ in range(int(rng.poisson(1.5 * rate))):
+        for _ in range(int(rng.poisson(INTERIOR_RATE * rate))):
             _place_one(room, rng, floor, what, tops)
 
 
@@ -342,7 +349,7 @@ def _place_one(room: Room, rng, floor: Floor, what: str, tops: list) -> None:
 def _decorate_walls(room: Room, rng, walls: list[Wall], H: float) -> None:
     """Posters, pictures, notices and a whiteboard, a few millimetres off the wall."""
     for wall in walls:
-        for _ in range(int(rng.poisson(0.45 * wall.length))):
+        for _ in range(int(rng.poisson(POSTERS_PER_M * wall.length))):
             w, h = rng.uniform(0.25, 1.2), rng.uniform(0.25, 0.9)
             if w > wall.length - 0.2:
                 continue
@@ -403,9 +410,9 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
     _place_interior(room, rng, floor, rtype, tops)
     for top in tops:
         if top.M[2, 3] < 1.6:
-            room.panels += F.clutter_on(rng, top, density=rng.uniform(0.8, 1.8))
+            room.panels += F.clutter_on(rng, top, density=rng.uniform(*TOP_CLUTTER))
     # floor clutter and rugs
-    for what, rate in (("carton", 6.0), ("plant", 1.5), ("bin", 0.8), ("chair", 1.0)):
+    for what, rate in FLOOR_CLUTTER:
         for _ in range(int(rng.poisson(rate))):
             _place_one(room, rng, floor, what, tops)
     for _ in range(int(rng.poisson(0.8))):
