@@ -161,6 +161,22 @@ def _run(argv, capsys):
     return exc.value.code, capsys.readouterr()
 
 
+def test_pair_motion_is_the_angle_and_distance_between_the_first_cameras():
+    from pcrcg.data.layout import PairRecord
+    from pcrcg.data.stats.collect import pair_motion
+    from pcrcg.geometry import make_transform
+
+    def rz(deg):
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+    pairs = [PairRecord("s", 0, k + 2, make_transform(rz(a), [d, 0, 0]), 0.2, 10)
+             for k, (a, d) in enumerate([(30, 0.5), (60, 1.0), (90, 2.0)])]
+    m = pair_motion(pairs)
+    assert m["rotation_deg"]["median"] == pytest.approx(60) and m["rotation_deg"]["max"] == pytest.approx(90)
+    assert m["translation_m"]["median"] == pytest.approx(1.0) and m["translation_m"]["min"] == pytest.approx(0.5)
+
+
 def test_bad_root_is_one_line_error_naming_it(tmp_path, capsys):
     missing = tmp_path / "nowhere"
     code, io = _run([str(missing), "--out", str(tmp_path / "s")], capsys)
@@ -199,6 +215,8 @@ def test_cli_end_to_end_on_tiny(tiny_root, tmp_path, capsys):
         f = col["fpfh"][b]
         assert f["pairs"] == min(2, f["listed"]) and f["counted"] <= f["pairs"]
         assert sum(col["overlap"][b]["counts"]) == col["overlap"][b]["n_with_overlap"] > 0
+        assert col["overlap"][b]["rotation_deg"]["n"] == col["overlap"][b]["n"]
+    assert "relative rotation" in md and "inlier ratio" in md
     assert sum(col["overlap"]["train"]["counts"]) > 0
     run = sum(col["fpfh"][b]["pairs"] for b in ("3DMatch", "3DLoMatch"))
     assert col["sift"]["view_pairs"] == 2 * run  # first-first and last-last of each pair run

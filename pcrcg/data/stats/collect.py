@@ -119,13 +119,24 @@ def _hist(overlaps: list[float]) -> dict[str, Any]:
             "median": float(np.median(fin)) if len(fin) else None}
 
 
+def pair_motion(pairs: list[PairRecord]) -> dict[str, Any]:
+    """How far apart the two fragments' first cameras are: ``rotation_deg`` and ``translation_m`` of
+    the pairs' ground-truth transforms (:func:`~pcrcg.data.stats.measures.summarize` of each)."""
+    from pcrcg.geometry import rotation_angle_deg
+
+    T = [np.asarray(p.transform, dtype=np.float64) for p in pairs]
+    return {"rotation_deg": M.summarize(rotation_angle_deg(t[:3, :3]) for t in T),
+            "translation_m": M.summarize(float(np.linalg.norm(t[:3, 3])) for t in T)}
+
+
 def overlap_stats(src: Source) -> dict[str, Any]:
     """Overlap histograms (bins :data:`~pcrcg.data.stats.measures.OVERLAP_EDGES`) of each benchmark's
-    pairs (``gt.log`` pairs, overlaps from ``gt_overlap.log``) and of the training pairs."""
+    pairs (``gt.log`` pairs, overlaps from ``gt_overlap.log``) with their relative motion
+    (:func:`pair_motion`), and of the training pairs."""
     out: dict[str, Any] = {"edges": list(M.OVERLAP_EDGES)}
     for b in BENCHMARKS:
         pairs = src.benchmark_pairs(b)
-        out[b] = _hist([p.overlap for p in pairs]) if pairs else None
+        out[b] = {**_hist([p.overlap for p in pairs]), **pair_motion(pairs)} if pairs else None
     tr = src.train_overlaps()
     out["train"] = _hist(tr) if tr else None
     return out

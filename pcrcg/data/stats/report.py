@@ -59,6 +59,21 @@ def _fpfh(c: dict, b: str) -> str:
     return f"{_num(e['rr'], '{:.1f}')}% ({e['success']}/{e['counted']} counted; {e['pairs']} of {e['listed']} pairs)"
 
 
+def _motion(c: dict, b: str) -> str:
+    h = (c.get("overlap") or {}).get(b)
+    if not h or not h.get("rotation_deg") or h["rotation_deg"].get("median") is None:
+        return DASH
+    r, t = h["rotation_deg"], h["translation_m"]
+    return f"{r['median']:.0f} ({r['p10']:.0f}–{r['p90']:.0f}) deg; {t['median']:.2f} ({t['p10']:.2f}–{t['p90']:.2f}) m"
+
+
+def _fpfh_ir(c: dict, b: str) -> str:
+    e = (c.get("fpfh") or {}).get(b)
+    if not e or e.get("ir") is None:
+        return DASH
+    return f"{_num(e['ir'], '{:.1f}')}% / {_num(e.get('fmr'), '{:.1f}')}%"
+
+
 def _sift(c: dict, key: str, what: str) -> str:
     s = c.get("sift")
     if not s:
@@ -95,10 +110,14 @@ ROWS: list[tuple[str, Callable[[dict], str]]] = [
     ("normal-orientation entropy, bits (median, min–max)", lambda c: _range(_frag(c).get("normal_entropy"))),
     *[(f"{b} pairs: overlap median; count 0–10/10–30/30–50/50–70/70–100%",
        (lambda b: lambda c: _overlap((c.get("overlap") or {}).get(b)))(b)) for b in BENCHMARKS],
+    *[(f"{b} pairs: relative rotation; translation of the first cameras: median (p10–p90)",
+       (lambda b: lambda c: _motion(c, b))(b)) for b in BENCHMARKS],
     ("train pairs: overlap median; count 0–10/10–30/30–50/50–70/70–100%",
      lambda c: _overlap((c.get("overlap") or {}).get("train"))),
     *[(f"FPFH + RANSAC RR, {b} (scene mean; registered/counted; pairs run of listed)",
        (lambda b: lambda c: _fpfh(c, b))(b)) for b in BENCHMARKS],
+    *[(f"FPFH correspondences, {b}: inlier ratio (10 cm) / feature-match recall, mean over pairs",
+       (lambda b: lambda c: _fpfh_ir(c, b))(b)) for b in BENCHMARKS],
     ("SIFT keypoints / image, projection grid: mean (p10–p90)", lambda c: _sift(c, "grid", "keypoints")),
     ("SIFT keypoints / image, native size: mean (p10–p90)", lambda c: _sift(c, "native", "keypoints")),
     ("verified 2D matches / view pair, projection grid: mean", lambda c: _sift(c, "grid", "matches")),
