@@ -9,7 +9,8 @@ model's outputs for ``--pairs`` pairs of each test benchmark, with the run's def
 
 * **before**: every sampled row matched (no ``src_ids``/``tgt_ids``) and ``RansacConfig(prune=False)``
   (every point of every validated hypothesis scored);
-* **after**: the defaults (each distinct sampled point matched once; the pruned overlap score).
+* **after**: the defaults (each distinct sampled point matched once; the pruned overlap score at
+  N >= ``RansacConfig.prune_min_points``, the reference scorer below).
 
 It also says whether both gave the same transforms, correspondences and RANSAC counts on every pair.
 """
