@@ -4,6 +4,8 @@ Public API (imported lazily, so ``import pcrcg.models`` stays cheap):
 
 * :class:`~pcrcg.models.predator.Predator` / :func:`~pcrcg.models.predator.build_predator`
   ``(model_cfg, in_dim)``; :class:`~pcrcg.models.predator.PredatorConfig`.
+* :class:`~pcrcg.models.geotransformer.GeoTransformer` / :func:`~pcrcg.models.geotransformer.build_geotransformer`
+  ``(model_cfg, in_dim)`` (``model=geotransformer``; its package: :mod:`pcrcg.models.geotransformer`).
 * :class:`~pcrcg.models.losses.PredatorLoss`, :func:`~pcrcg.models.losses.circle_loss`,
   :func:`~pcrcg.models.losses.weighted_bce`.
 * :class:`~pcrcg.models.module.PCRCGModule`, :class:`~pcrcg.models.module.FragmentOutput`,
@@ -22,6 +24,7 @@ from typing import Any
 
 _EXPORTS = {
     "Predator": "predator", "PredatorConfig": "predator", "PredatorOutput": "predator", "build_predator": "predator",
+    "GeoTransformer": "geotransformer", "build_geotransformer": "geotransformer",
     "PredatorLoss": "losses", "LossConfig": "losses", "circle_loss": "losses", "weighted_bce": "losses",
     "PCRCGModule": "module", "FragmentOutput": "module", "PairOutput": "module", "OptimConfig": "module",
     "PairDataModule": "datamodule", "PairCollate": "datamodule", "PairBatch": "datamodule",
