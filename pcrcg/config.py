@@ -564,6 +564,10 @@ def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
         from pcrcg.models.geotransformer.config import GeoTransformerConfig
 
         GeoTransformerConfig.from_mapping(model)
+    if model.get("name") == "cofinet":  # the same for CoFiNet
+        from pcrcg.models.cofinet.config import CoFiNetConfig
+
+        CoFiNetConfig.from_mapping(model)
     if top.icp_init == "learned" and top.method not in ICP_METHODS:
         raise ConfigError("icp_init", top.icp_init, f"identity unless method is {_fmt(ICP_METHODS)}")
     feats = _group_name(data, "features")

@@ -203,6 +203,14 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     res = register_features(as_fragment(out.src), as_fragment(out.tgt), n_points, rcfg, seed=int(cfg.seed))
     T = np.asarray(res.transform, dtype=float)
     own = {}
+    if out.correspondences is not None:  # a model registered by RANSAC on its own correspondences (CoFiNet)
+        from pcrcg.registration.correspondences import register_correspondences
+
+        creg = register_correspondences(out.correspondences, out.correspondence_scores, n_points, rcfg,
+                                        seed=int(cfg.seed))
+        own = {"registration": "correspondences", "model_correspondences": int(len(out.correspondences)),
+               "transform_features": _shift(T, offset, back=True).round(10).tolist()}
+        T = np.asarray(creg.transform, dtype=float)
     if out.estimate is not None:  # a model that registers the pair itself (GeoTransformer's LGR): its estimate
         own = {"registration": "lgr", "lgr_pairs": int(len(out.estimate_pairs)),
                "transform_ransac": _shift(T, offset, back=True).round(10).tolist()}

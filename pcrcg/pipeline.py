@@ -160,12 +160,14 @@ def run_name(overrides: Sequence[str]) -> str:
 
 
 def method_label(data: Mapping[str, Any]) -> str:
-    """The paper's name for what a run computes: Predator, PCR-CG, GeoTransformer (+ PCR-CG), FPFH, ICP, ColorICP, SIFT-DLT."""
+    """The paper's name for what a run computes: Predator, PCR-CG, GeoTransformer (+ PCR-CG), CoFiNet (+ PCR-CG), FPFH, ICP, ColorICP, SIFT-DLT."""
     method = data.get("method", "learned")
     if method == "learned":
         model = data.get("model") if isinstance(data.get("model"), Mapping) else {}
         if model.get("name") == "geotransformer":  # the paper's GeoTransformer table
             return "GeoTransformer + PCR-CG" if color_enabled(data) else "GeoTransformer"
+        if model.get("name") == "cofinet":  # the paper's CoFiNet table (its re-trained rows)
+            return "CoFiNet + PCR-CG" if color_enabled(data) else "CoFiNet"
         return "PCR-CG" if color_enabled(data) else "Predator"
     return {"fpfh": "FPFH", "icp": "ICP", "color_icp": "ColorICP", "sift_dlt": "SIFT-DLT",
             "sift_lifted": "SIFT-lifted"}.get(method, method)

@@ -62,7 +62,7 @@ def test_defaults_compose_and_validate(conf):
         # groups: an option that does not exist names the ones that do
         (["data=kitti"], "data", "synthmatch"),
         (["profile=huge"], "profile", "cpu, official, paper, tiny"),
-        (["model=cofinet"], "model", "predator"),
+        (["model=dgr"], "model", "predator"),
         (["encoder2d=resnet"], "encoder2d", "imagenet, pri3d, scratch"),
         (["features=normals"], "features", "deep, disk, none, rgb, sift"),
         (["projection=orthographic"], "projection", "explicit, implicit, none"),

@@ -24,6 +24,7 @@ from pcrcg.evaluation.metrics import (
     write_estimates,
 )
 from pcrcg.evaluation.pairs import INLIER_RATIO_FILE, write_inlier_ratios
+from pcrcg.registration.correspondences import register_correspondences
 from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig, pair_seed, register_features
 from pcrcg.registration.ransac import ransac, torch_threads
 
@@ -118,8 +119,19 @@ def evaluate_model_outputs(
         cov = getattr(out, "color_coverage", float("nan"))
         if cov is not None and np.isfinite(cov):
             coverage.append(float(cov))
+        corr = getattr(out, "correspondences", None)  # a model's own correspondences (CoFiNet): N of them, RANSAC
         for n in ns:
             t0 = time.perf_counter()
+            if corr is not None:
+                pts = np.asarray(corr, np.float32).reshape(-1, 6)
+                creg = register_correspondences(pts, out.correspondence_scores, n, cfg,
+                                                seed=pair_seed(seed, scene, i, j, n))
+                seconds[n] += time.perf_counter() - t0
+                est[n][scene][(i, j)] = creg.transform
+                u = pts[creg.used]
+                irs[n][scene].append(inlier_ratio(u[:, :3], u[:, 3:], T_gt, inlier_distance) if len(u) else 0.0)
+                pair_irs[n][scene][(i, j)] = irs[n][scene][-1]
+                continue
             reg = register_features(src, tgt, n, cfg, seed=pair_seed(seed, scene, i, j, n))
             seconds[n] += time.perf_counter() - t0
             est[n][scene][(i, j)] = reg.transform

@@ -39,8 +39,10 @@ from pcrcg.models.predator import PredatorOutput, build_predator
 STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
              "overlap_recall", "matchability_precision", "matchability_recall",
              # model=geotransformer (its coarse loss is the circle_loss)
-             "point_matching_loss", "superpoint_precision", "point_precision")
-MODELS = ("predator", "geotransformer")
+             "point_matching_loss", "superpoint_precision", "point_precision",
+             # model=cofinet (its coarse loss is also logged as circle_loss, the checkpoint monitor)
+             "coarse_matching_loss", "fine_matching_loss", "coarse_precision", "fine_precision")
+MODELS = ("predator", "geotransformer", "cofinet")
 
 
 @dataclass
@@ -100,6 +102,10 @@ class PairOutput:
     color_coverage: float = float("nan")
     estimate: np.ndarray | None = None
     estimate_pairs: np.ndarray | None = None
+    # models registered by RANSAC on their own correspondences (CoFiNet): (C, 6) float32 source xyz, target
+    # xyz in the fragments' own frames, and (C,) confidences; the evaluation samples N of them by confidence
+    correspondences: np.ndarray | None = None
+    correspondence_scores: np.ndarray | None = None
 
 
 def plain(value: Any) -> Any:
@@ -175,6 +181,10 @@ class PCRCGModule(L.LightningModule):
             from pcrcg.models.geotransformer import build_geotransformer
 
             self.net = build_geotransformer(dict(model), in_dim=1 + lifted)
+        elif self.kind == "cofinet":
+            from pcrcg.models.cofinet import build_cofinet
+
+            self.net = build_cofinet(dict(model), in_dim=1 + lifted)
         else:
             self.net = build_predator(dict(model), in_dim=1 + lifted)
         self.loss_cfg = LossConfig.from_mapping(model.get("loss"))
@@ -215,6 +225,8 @@ class PCRCGModule(L.LightningModule):
             feats, coverage = self.input_features(batch)
         if self.kind == "geotransformer":  # training matches the true superpoint pairs (GeoTransformer's targets)
             return self.net(feats, batch.pyramid, batch.transform, targets=self.training), coverage
+        if self.kind == "cofinet":  # training matches ground-truth node pairs (CoFiNet's), from the correspondences
+            return self.net(feats, batch.pyramid, batch.corr, targets=self.training), coverage
         return self.net(feats, batch.pyramid), coverage
 
     def compute_stats(self, batch: PairBatch, out: Any) -> dict[str, torch.Tensor]:
@@ -223,6 +235,11 @@ class PCRCGModule(L.LightningModule):
 
             with record_function("pcrcg.losses"):
                 return geotransformer_loss(out, batch.transform, self.net.cfg.loss, self.net.cfg.voxel_size)
+        if self.kind == "cofinet":
+            from pcrcg.models.cofinet import cofinet_loss
+
+            with record_function("pcrcg.losses"):
+                return cofinet_loss(out, batch.transform, batch.corr, self.net.cfg)
         # in training, the matchability labels are only computed while their loss is on
         need = (not self.training) or (self.loss_cfg.w_matchability > 0 and bool(self.matchability_gate > 0))
         with record_function("pcrcg.losses"):
@@ -293,6 +310,8 @@ class PCRCGModule(L.LightningModule):
         """Outputs of both fragments in their own frames (un-doing any augmentation of the batch)."""
         if self.kind == "geotransformer":
             return self._predict_geotransformer(batch)
+        if self.kind == "cofinet":
+            return self._predict_cofinet(batch)
         out, coverage = self(batch)
         ns = batch.n_src
         pts = batch.pyramid.points[0]
@@ -332,6 +351,29 @@ class PCRCGModule(L.LightningModule):
         est = inv_t @ to_np(lgr.transform) @ A_s
         pairs = np.concatenate([own(inv_s, to_np(lgr.src)), own(inv_t, to_np(lgr.tgt))], 1)
         return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage, est, pairs)
+
+    def _predict_cofinet(self, batch: PairBatch) -> PairOutput:
+        """Level-0 points with unit fine features (overlap: their node's matching probability, matchability
+        1) and the fine correspondences with their confidences, all in the fragments' own frames (the
+        network never sees the batch's transform or correspondences here)."""
+        with record_function("pcrcg.input_features (2D encoder + lifting)"):
+            feats, coverage = self.input_features(batch)
+        out = self.net(feats, batch.pyramid)
+        to_np = lambda t: t.detach().double().cpu().numpy()  # noqa: E731
+        A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
+        inv_s, inv_t = np.linalg.inv(A_s), np.linalg.inv(A_t)
+        own = lambda A, p: (p @ A[:3, :3].T + A[:3, 3]).astype(np.float32)  # noqa: E731
+        s_score, t_score = self.net.point_scores(out)
+        frag = lambda A, pts, f, sc: FragmentOutput(  # noqa: E731
+            own(A, to_np(pts)), to_np(torch.nn.functional.normalize(f, dim=1)).astype(np.float32),
+            to_np(sc).astype(np.float32), np.ones(len(pts), np.float32))
+        src = frag(inv_s, out.src_points, out.src_feats_f, s_score)
+        tgt = frag(inv_t, out.tgt_points, out.tgt_feats_f, t_score)
+        cs, ct, conf = self.net.correspondences(out)
+        T = inv_t @ batch.transform.double().cpu().numpy() @ A_s
+        pairs = np.concatenate([own(inv_s, to_np(cs)), own(inv_t, to_np(ct))], 1).reshape(-1, 6)
+        return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage, correspondences=pairs,
+                          correspondence_scores=to_np(conf).astype(np.float32))
 
     def predict_step(self, batch: PairBatch, batch_idx: int, dataloader_idx: int = 0) -> PairOutput:
         return self.predict_pair(batch)

@@ -426,6 +426,9 @@ def save_pair_output(out: PairOutput, path: str | Path) -> Path:
     if out.estimate is not None:  # a model's own registration (GeoTransformer's LGR)
         arrays["estimate"] = np.asarray(out.estimate)
         arrays["estimate_pairs"] = np.asarray(out.estimate_pairs, np.float32).reshape(-1, 6)
+    if out.correspondences is not None:  # a model's own correspondences (CoFiNet's)
+        arrays["correspondences"] = np.asarray(out.correspondences, np.float32).reshape(-1, 6)
+        arrays["correspondence_scores"] = np.asarray(out.correspondence_scores, np.float32).reshape(-1)
     np.savez_compressed(path, transform=out.transform, scene=np.array(out.scene), i=out.i, j=out.j,
                         color_coverage=out.color_coverage, **arrays)
     return path
@@ -436,5 +439,6 @@ def load_pair_output(path: str | Path) -> PairOutput:
         frag = lambda p: FragmentOutput(z[f"{p}_points"], z[f"{p}_descriptors"], z[f"{p}_overlap"],  # noqa: E731
                                         z[f"{p}_matchability"])
         extra = (z["estimate"], z["estimate_pairs"]) if "estimate" in z.files else (None, None)
+        corr = (z["correspondences"], z["correspondence_scores"]) if "correspondences" in z.files else (None, None)
         return PairOutput(str(z["scene"]), int(z["i"]), int(z["j"]), frag("src"), frag("tgt"), z["transform"],
-                          float(z["color_coverage"]), *extra)
+                          float(z["color_coverage"]), *extra, *corr)
