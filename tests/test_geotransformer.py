@@ -249,6 +249,24 @@ def test_network_shapes_and_color_changes_only_the_first_layer():
     assert lgr.transform.shape == (4, 4) and lgr.src.shape == lgr.tgt.shape
 
 
+def test_four_levels_decode_through_an_inner_level():
+    """GeoTransformer's paper layout: superpoints at level 3, the decoder passes level 2 on its way to 1."""
+    from pcrcg.models.datamodule import PairCollate
+    from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
+    from pcrcg.models.toy import toy_pair
+
+    s = toy_pair(1, density=40.0)
+    spec = PyramidSpec(0.08, 4, 2.5)
+    spec = PyramidSpec(0.08, 4, 2.5, calibrate_limits([s.src_points, s.tgt_points], spec))
+    batch = PairCollate(spec, overlap_radius=0.12)([s])
+    cfg = {**_model_cfg(), "voxel_size": 0.08, "num_layers": 4, "patch_points": None}
+    geo = build_geotransformer(cfg, in_dim=1)
+    assert geo.cfg.patch_points == 64 and len(geo.backbone.units) == 2  # level 2 (unary), level 1 (last)
+    out = geo(torch.ones(batch.pyramid.points[0].shape[0], 1), batch.pyramid, batch.transform, targets=True)
+    assert out.src_nodes.shape[0] == batch.pyramid.split(3)[0] and out.src_fine.shape[0] == batch.pyramid.split(1)[0]
+    assert out.src_feats_f.shape[1] == geo.cfg.output_dim
+
+
 # --------------------------------------------------------------------------- tiny profile, end to end
 
 
