@@ -34,7 +34,7 @@ from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.losses import LossConfig, PredatorLoss
-from pcrcg.models.predator import PredatorOutput, build_predator
+from pcrcg.models.predator import build_predator
 
 STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
              "overlap_recall", "matchability_precision", "matchability_recall",
