@@ -1,4 +1,5 @@
-"""The Lightning module: Predator + (optionally) the 2D encoder and the 2D->3D projection module.
+"""The Lightning module: the 3D network (``model.name``: ``predator`` | ``geotransformer``) + (optionally)
+the 2D encoder and the 2D->3D projection module.
 
 ``projection=none`` (or ``features=none``): geometry only, the 3D input is a constant 1 per point
 (``in_dim = 1``). Otherwise a :class:`pcrcg.lifting.ColorLifter` (which holds the 2D feature
