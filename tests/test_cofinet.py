@@ -356,3 +356,44 @@ def test_tiny_run_trains_and_evaluates_cofinet(tiny_root, tmp_path, monkeypatch,
         back = load_pair_output(save_pair_output(out, tmp_path / "pair.npz"))
         np.testing.assert_allclose(back.correspondences, out.correspondences)
         np.testing.assert_allclose(back.correspondence_scores, out.correspondence_scores)
+
+
+@pytest.mark.slow
+def test_training_on_one_pair_learns_to_match_and_register_it():
+    """40 Adam steps on one toy pair (0.1 m voxels): the coarse matching finds overlapping node pairs,
+    the fine correspondences become inliers and RANSAC on them registers the pair (measured: coarse
+    precision 0.03 -> 0.92, correspondences within 0.1 m 0% -> 12%, RTE 1.05 -> 0.08 m, RRE 24 -> 5 deg)."""
+    from pcrcg.models.module import PCRCGModule
+    from pcrcg.registration.correspondences import register_correspondences
+    from pcrcg.registration.pipeline import RegistrationConfig
+
+    torch.manual_seed(0)
+    v = 0.1
+    batch = _toy_pyramid(v)
+    module = PCRCGModule({**_model_cfg(), "voxel_size": v}, optim={"name": "adam", "lr": 1e-3})
+    opt = module.configure_optimizers()["optimizer"]
+    gt = batch.transform.double().numpy()
+
+    def check():
+        module.eval()
+        with torch.no_grad():
+            out, _ = module(batch)
+            precision = float(module.compute_stats(batch, out)["coarse_precision"])
+            s, t, conf = module.net.correspondences(out)
+        pairs = torch.cat([s, t], 1).double().numpy()
+        ir = float((np.linalg.norm(pairs[:, :3] @ gt[:3, :3].T + gt[:3, 3] - pairs[:, 3:], axis=1) < 0.1).mean())
+        T = register_correspondences(pairs, conf.numpy(), 1000,
+                                     RegistrationConfig(ransac={"distance": 2 * v, "max_iterations": 5000}), 0).transform
+        rre = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(T[:3, :3].T @ gt[:3, :3]) - 1) / 2))))
+        return precision, ir, rre, float(np.linalg.norm(T[:3, 3] - gt[:3, 3]))
+
+    p0, ir0, _, rte0 = check()
+    for _ in range(40):
+        module.train()
+        loss = module.compute_stats(batch, module(batch)[0])["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    p1, ir1, rre1, rte1 = check()
+    assert p0 < 0.2 and ir0 < 0.02 and rte0 > 0.5  # untrained: no overlapping node pairs, no registration
+    assert p1 > 0.7 and ir1 > 0.06 and rre1 < 10.0 and rte1 < 0.3
