@@ -397,3 +397,6 @@ def test_training_on_one_pair_learns_to_match_and_register_it():
     p1, ir1, rre1, rte1 = check()
     assert p0 < 0.2 and ir0 < 0.02 and rte0 > 0.5  # untrained: no overlapping node pairs, no registration
     assert p1 > 0.7 and ir1 > 0.06 and rre1 < 10.0 and rte1 < 0.3
+    po = module.eval().predict_pair(batch)  # what the evaluation reads: the same pairs, in the fragments' frames
+    c, T = po.correspondences.astype(np.float64), po.transform
+    assert abs(float((np.linalg.norm(c[:, :3] @ T[:3, :3].T + T[:3, 3] - c[:, 3:], axis=1) < 0.1).mean()) - ir1) < 1e-6
