@@ -6,6 +6,8 @@ Public API (imported lazily, so ``import pcrcg.models`` stays cheap):
   ``(model_cfg, in_dim)``; :class:`~pcrcg.models.predator.PredatorConfig`.
 * :class:`~pcrcg.models.geotransformer.GeoTransformer` / :func:`~pcrcg.models.geotransformer.build_geotransformer`
   ``(model_cfg, in_dim)`` (``model=geotransformer``; its package: :mod:`pcrcg.models.geotransformer`).
+* :class:`~pcrcg.models.cofinet.CoFiNet` / :func:`~pcrcg.models.cofinet.build_cofinet` ``(model_cfg, in_dim)``
+  (``model=cofinet``; its package: :mod:`pcrcg.models.cofinet`).
 * :class:`~pcrcg.models.losses.PredatorLoss`, :func:`~pcrcg.models.losses.circle_loss`,
   :func:`~pcrcg.models.losses.weighted_bce`.
 * :class:`~pcrcg.models.module.PCRCGModule`, :class:`~pcrcg.models.module.FragmentOutput`,
@@ -25,6 +27,7 @@ from typing import Any
 _EXPORTS = {
     "Predator": "predator", "PredatorConfig": "predator", "PredatorOutput": "predator", "build_predator": "predator",
     "GeoTransformer": "geotransformer", "build_geotransformer": "geotransformer",
+    "CoFiNet": "cofinet", "build_cofinet": "cofinet",
     "PredatorLoss": "losses", "LossConfig": "losses", "circle_loss": "losses", "weighted_bce": "losses",
     "PCRCGModule": "module", "FragmentOutput": "module", "PairOutput": "module", "OptimConfig": "module",
     "PairDataModule": "datamodule", "PairCollate": "datamodule", "PairBatch": "datamodule",
