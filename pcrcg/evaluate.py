@@ -209,6 +209,9 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
         creg = register_correspondences(out.correspondences, out.correspondence_scores, n_points, rcfg,
                                         seed=int(cfg.seed))
         own = {"registration": "correspondences", "model_correspondences": int(len(out.correspondences)),
+               "correspondences": int(len(creg.used)),  # what RANSAC saw (replaces the descriptor path's figures)
+               "ransac_inliers": int(creg.ransac.n_inliers) if creg.ransac is not None else 0,
+               "fitness": _num(creg.ransac.fitness) if creg.ransac is not None else None,
                "transform_features": _shift(T, offset, back=True).round(10).tolist()}
         T = np.asarray(creg.transform, dtype=float)
     if out.estimate is not None:  # a model that registers the pair itself (GeoTransformer's LGR): its estimate

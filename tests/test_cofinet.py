@@ -356,6 +356,15 @@ def test_tiny_run_trains_and_evaluates_cofinet(tiny_root, tmp_path, monkeypatch,
         back = load_pair_output(save_pair_output(out, tmp_path / "pair.npz"))
         np.testing.assert_allclose(back.correspondences, out.correspondences)
         np.testing.assert_allclose(back.correspondence_scores, out.correspondence_scores)
+        # mode=pair answers RANSAC on N of the model's correspondences (the descriptor path's transform beside it)
+        from pcrcg.evaluate import run as evaluate_run
+
+        frags = tiny_root / "fragments" / s.scene
+        res = evaluate_run(compose("evaluate", ["profile=tiny", "mode=pair", "method=learned", f"checkpoint={ckpt}", "pair_points=50",
+                                                f"source={frags / f'cloud_bin_{s.j}.ply'}",
+                                                f"target={frags / f'cloud_bin_{s.i}.ply'}"]))
+        assert res["registration"] == "correspondences" and res["model_correspondences"] > 0
+        assert res["correspondences"] == min(50, res["model_correspondences"]) and len(res["transform_features"]) == 4
 
 
 @pytest.mark.slow
