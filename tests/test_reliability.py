@@ -179,11 +179,10 @@ def test_bad_last_ckpt_is_moved_aside_and_training_starts_afresh(tmp_path, capsy
 def test_planted_model_ckpt_is_not_reused(tmp_path, monkeypatch, capsys):
     """``<paths.checkpoints>/<train hash>/model.ckpt`` that does not read safely: moved aside, trained again."""
     from pcrcg.config import load_run_config
-    from pcrcg.pipeline import JobInfo, RunContext, train_model
-    from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash
+    from pcrcg.pipeline import JobInfo, RunContext, train_key, train_model
 
     cfg = load_run_config(["profile=tiny", "logger=none", f"paths.checkpoints={tmp_path / 'ck'}"])
-    cache = tmp_path / "ck" / config_hash(cfg, TRAIN_HASH_EXCLUDE)
+    cache = tmp_path / "ck" / train_key(cfg)  # the cache's key: the training config and the code version
     cache.mkdir(parents=True)
     _crafted(cache / "model.ckpt", tmp_path / "PWNED", "torch_zip")
     calls = []
