@@ -24,7 +24,7 @@ import contextlib
 
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import lightning as L
 import numpy as np
@@ -158,6 +158,31 @@ def training_2d(lifting: Mapping[str, Any] | None) -> str:
     if value not in TRAINING_2D:
         raise ConfigError("encoder2d.training", value, " | ".join(TRAINING_2D))
     return value
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    """A tensor as a float64 numpy array on the host."""
+    return t.detach().double().cpu().numpy()
+
+
+def _in_frame(A: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points (K, 3) mapped by the 4x4 ``A``, as float32."""
+    return (p @ A[:3, :3].T + A[:3, 3]).astype(np.float32)
+
+
+class _OwnFrame(NamedTuple):
+    """:meth:`PCRCGModule._own_frame_outputs`: the network's output, both fragments' outputs and the
+    ground truth in the fragments' own frames, the coverage, the inverse augmentations (source,
+    target) and the source's augmentation."""
+
+    out: Any
+    src: FragmentOutput
+    tgt: FragmentOutput
+    truth: np.ndarray
+    coverage: float
+    inv_s: np.ndarray
+    inv_t: np.ndarray
+    aug_s: np.ndarray
 
 
 class PCRCGModule(L.LightningModule):
@@ -330,51 +355,46 @@ class PCRCGModule(L.LightningModule):
         T = np.linalg.inv(A_t) @ batch.transform.double().cpu().numpy() @ A_s
         return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage)
 
-    def _predict_geotransformer(self, batch: PairBatch) -> PairOutput:
-        """Level-1 points with unit fine features (overlap: their superpoint's matching score,
-        matchability 1) and the local-to-global registration, all in the fragments' own frames
+    def _own_frame_outputs(self, batch: PairBatch, points: str) -> "_OwnFrame":
+        """What GeoTransformer and CoFiNet share at prediction: the network's output on the batch and
+        both fragments' :class:`FragmentOutput` in their own frames (points ``out.<src|tgt>_<points>``,
+        unit fine features, the network's point scores as overlap, matchability 1), the ground truth
+        in those frames, and the inverse augmentations that map the network's points back into them
         (the network never sees the batch's transform here)."""
         with record_function("pcrcg.input_features (2D encoder + lifting)"):
             feats, coverage = self.input_features(batch)
         out = self.net(feats, batch.pyramid)
-        to_np = lambda t: t.detach().double().cpu().numpy()  # noqa: E731
-        A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
-        inv_s, inv_t = np.linalg.inv(A_s), np.linalg.inv(A_t)
-        own = lambda A, p: (p @ A[:3, :3].T + A[:3, 3]).astype(np.float32)  # noqa: E731
+        aug_s, aug_t = _np(batch.src_aug), _np(batch.tgt_aug)
+        inv_s, inv_t = np.linalg.inv(aug_s), np.linalg.inv(aug_t)
         s_score, t_score = self.net.point_scores(out)
-        frag = lambda A, pts, f, sc: FragmentOutput(  # noqa: E731
-            own(A, to_np(pts)), to_np(torch.nn.functional.normalize(f, dim=1)).astype(np.float32),
-            to_np(sc).astype(np.float32), np.ones(len(pts), np.float32))
-        src = frag(inv_s, out.src_fine, out.src_feats_f, s_score)
-        tgt = frag(inv_t, out.tgt_fine, out.tgt_feats_f, t_score)
-        lgr = self.net.register(out)
-        T = inv_t @ batch.transform.double().cpu().numpy() @ A_s
-        est = inv_t @ to_np(lgr.transform) @ A_s
-        pairs = np.concatenate([own(inv_s, to_np(lgr.src)), own(inv_t, to_np(lgr.tgt))], 1)
-        return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage, est, pairs)
+
+        def frag(inv: np.ndarray, pts: torch.Tensor, f: torch.Tensor, score: torch.Tensor) -> FragmentOutput:
+            return FragmentOutput(_in_frame(inv, _np(pts)), _np(torch.nn.functional.normalize(f, dim=1)).astype(np.float32),
+                                  _np(score).astype(np.float32), np.ones(len(pts), np.float32))
+
+        src = frag(inv_s, getattr(out, f"src_{points}"), out.src_feats_f, s_score)
+        tgt = frag(inv_t, getattr(out, f"tgt_{points}"), out.tgt_feats_f, t_score)
+        truth = inv_t @ _np(batch.transform) @ aug_s
+        return _OwnFrame(out, src, tgt, truth, coverage, inv_s, inv_t, aug_s)
+
+    def _predict_geotransformer(self, batch: PairBatch) -> PairOutput:
+        """Level-1 points with unit fine features (overlap: their superpoint's matching score,
+        matchability 1) and the local-to-global registration, all in the fragments' own frames."""
+        o = self._own_frame_outputs(batch, "fine")
+        lgr = self.net.register(o.out)
+        est = o.inv_t @ _np(lgr.transform) @ o.aug_s
+        pairs = np.concatenate([_in_frame(o.inv_s, _np(lgr.src)), _in_frame(o.inv_t, _np(lgr.tgt))], 1)
+        return PairOutput(batch.scene, batch.i, batch.j, o.src, o.tgt, o.truth, o.coverage, est, pairs)
 
     def _predict_cofinet(self, batch: PairBatch) -> PairOutput:
         """Level-0 points with unit fine features (overlap: their node's matching probability, matchability
         1) and the fine correspondences with their confidences, all in the fragments' own frames (the
-        network never sees the batch's transform or correspondences here)."""
-        with record_function("pcrcg.input_features (2D encoder + lifting)"):
-            feats, coverage = self.input_features(batch)
-        out = self.net(feats, batch.pyramid)
-        to_np = lambda t: t.detach().double().cpu().numpy()  # noqa: E731
-        A_s, A_t = batch.src_aug.double().cpu().numpy(), batch.tgt_aug.double().cpu().numpy()
-        inv_s, inv_t = np.linalg.inv(A_s), np.linalg.inv(A_t)
-        own = lambda A, p: (p @ A[:3, :3].T + A[:3, 3]).astype(np.float32)  # noqa: E731
-        s_score, t_score = self.net.point_scores(out)
-        frag = lambda A, pts, f, sc: FragmentOutput(  # noqa: E731
-            own(A, to_np(pts)), to_np(torch.nn.functional.normalize(f, dim=1)).astype(np.float32),
-            to_np(sc).astype(np.float32), np.ones(len(pts), np.float32))
-        src = frag(inv_s, out.src_points, out.src_feats_f, s_score)
-        tgt = frag(inv_t, out.tgt_points, out.tgt_feats_f, t_score)
-        cs, ct, conf = self.net.correspondences(out)
-        T = inv_t @ batch.transform.double().cpu().numpy() @ A_s
-        pairs = np.concatenate([own(inv_s, to_np(cs)), own(inv_t, to_np(ct))], 1).reshape(-1, 6)
-        return PairOutput(batch.scene, batch.i, batch.j, src, tgt, T, coverage, correspondences=pairs,
-                          correspondence_scores=to_np(conf).astype(np.float32))
+        network never sees the batch's correspondences here)."""
+        o = self._own_frame_outputs(batch, "points")
+        cs, ct, conf = self.net.correspondences(o.out)
+        pairs = np.concatenate([_in_frame(o.inv_s, _np(cs)), _in_frame(o.inv_t, _np(ct))], 1).reshape(-1, 6)
+        return PairOutput(batch.scene, batch.i, batch.j, o.src, o.tgt, o.truth, o.coverage, correspondences=pairs,
+                          correspondence_scores=_np(conf).astype(np.float32))
 
     def predict_step(self, batch: PairBatch, batch_idx: int, dataloader_idx: int = 0) -> PairOutput:
         return self.predict_pair(batch)
