@@ -14,12 +14,36 @@ This is Predator's 3DMatch encoder and GeoTransformer's KPConv-FPN encoder (its 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import torch
 from torch import nn
 
 from pcrcg.models.kpconv.blocks import ResnetBottleneckBlock, SimpleBlock
 from pcrcg.models.kpconv.pyramid import TensorPyramid
+
+
+@dataclass
+class KPConvSettings:
+    """What every backbone's config holds for this encoder (``conf/model/common/kpconv.yaml``): the
+    input width, the level-0 voxel (m), the levels, level 0's width, the radii in voxels of the level
+    and the kernel. Predator's, GeoTransformer's and CoFiNet's configs extend it."""
+
+    in_dim: int = 1
+    voxel_size: float = 0.025
+    num_layers: int = 4
+    first_dim: int = 128
+    conv_radius: float = 2.5
+    kp_extent: float = 2.0
+    num_kernel_points: int = 15
+    kernel_seed: int = 0
+
+    @classmethod
+    def known(cls, m: Mapping[str, Any], **overrides: Any) -> dict[str, Any]:
+        """The entries of ``m`` (a ``model`` config node; other models' keys are ignored) that are
+        fields of ``cls``, with ``overrides`` on top."""
+        names = set(cls.__dataclass_fields__)
+        return {**{k: v for k, v in dict(m).items() if k in names}, **overrides}
 
 
 @dataclass(frozen=True)

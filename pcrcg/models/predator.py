@@ -25,7 +25,7 @@ from torch import nn
 from torch.profiler import record_function
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.encoder import kpconv_encoder, run_encoder
+from pcrcg.models.encoder import KPConvSettings, kpconv_encoder, run_encoder
 from pcrcg.models.kpconv.blocks import (
     LastUnaryBlock,
     NearestUpsampleBlock,
@@ -38,29 +38,20 @@ from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
 @dataclass
-class PredatorConfig:
-    """Network sizes. Radii are in units of ``voxel_size`` (the level-0 grid), as in Predator."""
+class PredatorConfig(KPConvSettings):
+    """Network sizes (the encoder's in :class:`KPConvSettings`). Radii are in units of ``voxel_size``
+    (the level-0 grid), as in Predator."""
 
-    in_dim: int = 1
-    voxel_size: float = 0.025
-    num_layers: int = 4
-    first_dim: int = 128
     final_dim: int = 32
     gnn_dim: int = 256
     num_heads: int = 4
     dgcnn_k: int = 10
     attention: Sequence[str] = field(default_factory=lambda: ("self", "cross", "self"))
-    conv_radius: float = 2.5
-    kp_extent: float = 2.0
-    num_kernel_points: int = 15
-    kernel_seed: int = 0
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "PredatorConfig":
         """Build from a config mapping (unknown keys are ignored)."""
-        names = {f for f in cls.__dataclass_fields__}
-        kw = {k: v for k, v in dict(m).items() if k in names}
-        kw.update(overrides)
+        kw = cls.known(m, **overrides)
         if "attention" in kw:
             kw["attention"] = tuple(kw["attention"])
         return cls(**kw)

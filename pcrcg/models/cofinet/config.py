@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
+from pcrcg.models.encoder import KPConvSettings
 
 BLOCKS = ("self", "cross")
 
@@ -36,23 +37,16 @@ class CoFiLossConfig:
 
 
 @dataclass
-class CoFiNetConfig:
-    """Network, matching and registration sizes (see the module docstring)."""
+class CoFiNetConfig(KPConvSettings):
+    """Network, matching and registration sizes (see the module docstring; the encoder's in
+    :class:`KPConvSettings`)."""
 
-    in_dim: int = 1
-    voxel_size: float = 0.025
-    num_layers: int = 4
-    first_dim: int = 128
     gnn_dim: int = 256
     num_heads: int = 4
     final_dim: int = 32
     blocks: Sequence[str] = ("self", "cross", "self")
     local_attention: bool = True
     local_blocks: Sequence[str] = ("self", "cross", "self")
-    conv_radius: float = 2.5
-    kp_extent: float = 2.0
-    num_kernel_points: int = 15
-    kernel_seed: int = 0
     patch_points: int | None = None  # None: 4 ** (num_layers - 1)
     sinkhorn_iterations: int = 100
     num_targets: int = 128
@@ -70,9 +64,7 @@ class CoFiNetConfig:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "CoFiNetConfig":
         """From the ``model`` config node (keys of other models are ignored)."""
-        names = set(cls.__dataclass_fields__)
-        kw = {k: v for k, v in dict(m).items() if k in names}
-        kw.update(overrides)
+        kw = cls.known(m, **overrides)
         kw["loss"] = kw["loss"] if isinstance(kw.get("loss"), CoFiLossConfig) else CoFiLossConfig.from_mapping(kw.get("loss"))
         for key in ("blocks", "local_blocks"):
             if key in kw:

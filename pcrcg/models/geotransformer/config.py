@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
+from pcrcg.models.encoder import KPConvSettings
 
 
 @dataclass
@@ -40,13 +41,10 @@ class GeoLossConfig:
 
 
 @dataclass
-class GeoTransformerConfig:
-    """Network, matching and registration sizes (see the module docstring)."""
+class GeoTransformerConfig(KPConvSettings):
+    """Network, matching and registration sizes (see the module docstring; the encoder's in
+    :class:`KPConvSettings`)."""
 
-    in_dim: int = 1
-    voxel_size: float = 0.025
-    num_layers: int = 4
-    first_dim: int = 128
     output_dim: int | None = None  # None: 2 * first_dim
     hidden_dim: int = 256
     num_heads: int = 4
@@ -54,10 +52,6 @@ class GeoTransformerConfig:
     sigma_d: float = 8.0
     sigma_a: float = 15.0
     angle_k: int = 3
-    conv_radius: float = 2.5
-    kp_extent: float = 2.0
-    num_kernel_points: int = 15
-    kernel_seed: int = 0
     patch_points: int | None = None  # None: 4 ** (num_layers - 1)
     sinkhorn_iterations: int = 100
     num_targets: int = 128
@@ -82,9 +76,7 @@ class GeoTransformerConfig:
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "GeoTransformerConfig":
         """From the ``model`` config node (keys of other models are ignored)."""
-        names = set(cls.__dataclass_fields__)
-        kw = {k: v for k, v in dict(m).items() if k in names}
-        kw.update(overrides)
+        kw = cls.known(m, **overrides)
         kw["loss"] = kw["loss"] if isinstance(kw.get("loss"), GeoLossConfig) else GeoLossConfig.from_mapping(kw.get("loss"))
         if "blocks" in kw:
             kw["blocks"] = tuple(kw["blocks"])
