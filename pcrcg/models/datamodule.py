@@ -31,6 +31,7 @@ from torch.utils.data import DataLoader
 from pcrcg.data.dataset import PairDataset, PairSample, View
 from pcrcg.errors import ConfigError
 from pcrcg.geometry import invert, make_transform, random_rotation, transform_points
+from pcrcg.models.fields import known_fields
 from pcrcg.models.kpconv.ops import radius_pairs
 from pcrcg.models.kpconv.pyramid import (
     FragmentPyramid,
@@ -56,8 +57,7 @@ class AugmentConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "AugmentConfig":
-        names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        return cls(**known_fields(cls, m))
 
 
 @dataclass

@@ -19,6 +19,7 @@ from typing import Any, Mapping
 import torch
 from torch import nn
 
+from pcrcg.models.fields import known_fields
 from pcrcg.models.kpconv.blocks import ResnetBottleneckBlock, SimpleBlock
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
@@ -42,8 +43,7 @@ class KPConvSettings:
     def known(cls, m: Mapping[str, Any], **overrides: Any) -> dict[str, Any]:
         """The entries of ``m`` (a ``model`` config node; other models' keys are ignored) that are
         fields of ``cls``, with ``overrides`` on top."""
-        names = set(cls.__dataclass_fields__)
-        return {**{k: v for k, v in dict(m).items() if k in names}, **overrides}
+        return known_fields(cls, m, **overrides)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,8 @@ from typing import Any, Mapping
 import torch
 import torch.nn.functional as F
 
+from pcrcg.models.fields import known_fields
+
 
 @dataclass
 class LossConfig:
@@ -54,8 +56,7 @@ class LossConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "LossConfig":
-        names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        return cls(**known_fields(cls, m))
 
 
 def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,

@@ -34,6 +34,7 @@ from torch.profiler import record_function  # stage labels (pcrcg.benchmarks.mod
 from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
+from pcrcg.models.fields import known_fields
 from pcrcg.models.losses import LossConfig, PredatorLoss
 from pcrcg.models.predator import build_predator
 
@@ -60,8 +61,7 @@ class OptimConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "OptimConfig":
-        names = set(cls.__dataclass_fields__)
-        cfg = cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        cfg = cls(**known_fields(cls, m))
         if cfg.name not in OPTIMIZERS:
             raise ConfigError("trainer.optim.name", cfg.name, " | ".join(OPTIMIZERS))
         return cfg

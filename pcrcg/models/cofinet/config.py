@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
+from pcrcg.models.fields import known_fields
 from pcrcg.models.encoder import KPConvSettings
 
 BLOCKS = ("self", "cross")
@@ -32,8 +33,7 @@ class CoFiLossConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "CoFiLossConfig":
-        names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        return cls(**known_fields(cls, m))
 
 
 @dataclass

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
+from pcrcg.models.fields import known_fields
 from pcrcg.models.encoder import KPConvSettings
 
 
@@ -36,8 +37,7 @@ class GeoLossConfig:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "GeoLossConfig":
-        names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in dict(m or {}).items() if k in names})
+        return cls(**known_fields(cls, m))
 
 
 @dataclass
