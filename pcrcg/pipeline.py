@@ -43,7 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
-from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, run_hash, to_plain
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.runs import RunTracker
@@ -285,7 +285,7 @@ def train_model(ctx: RunContext) -> TrainOutput:
 def train_key(cfg: DictConfig) -> str:
     """The checkpoint cache's key: the hash of the training config (evaluation-only settings left out) and,
     under ``logger.identity=config_and_code``, the code version (a model of other code is another model)."""
-    key = config_hash(cfg, TRAIN_HASH_EXCLUDE)
+    key = run_hash(cfg, TRAIN_HASH_EXCLUDE)
     if same_code(identity(cfg)):
         key = config_hash({"train_hash": key, "code_version": code_version()})
     return key
@@ -358,7 +358,7 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     data = to_plain(cfg)  # resolved once: interpolation is the slow part of OmegaConf
     validate_run_config(cfg, job.choices, job.search_dirs, data=data)
     _make_2d_weights(cfg, job, data)  # before the hash: it holds the weights file's digest
-    h = config_hash(data)
+    h = run_hash(data)
     name = run_name(job.overrides)
     job.output_dir.mkdir(parents=True, exist_ok=True)
 

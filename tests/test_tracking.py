@@ -12,7 +12,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pcrcg.tracking.git import git_info
-from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, flatten
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, flatten, run_hash
 from pcrcg.tracking.store import artifact_root, resolve_tracking_uri, sqlite_path, ui_command
 
 
@@ -295,7 +295,7 @@ def test_the_checkpoint_cache_key_follows_logger_identity(tmp_path, monkeypatch)
         ctx = pipeline.RunContext(cfg=cfg, job=pipeline.JobInfo(output_dir=tmp_path, base_dir=tmp_path),
                                   out_dir=tmp_path, device="cpu")
         out = pipeline.train_model(ctx)
-        return out.checkpoint.parent, out.reused, config_hash(cfg, TRAIN_HASH_EXCLUDE)
+        return out.checkpoint.parent, out.reused, run_hash(cfg, TRAIN_HASH_EXCLUDE)
 
     cache_a, reused, plain = train("A")
     assert not reused and cache_a.name != plain
@@ -306,3 +306,31 @@ def test_the_checkpoint_cache_key_follows_logger_identity(tmp_path, monkeypatch)
     cache_c, reused, plain_c = train("C", "logger.identity=config")  # config: the training config alone
     assert not reused and cache_c.name == plain_c == plain
     assert train("D", "logger.identity=config")[:2] == (cache_c, True)
+
+
+def test_a_geometry_only_run_leaves_the_color_settings_out_of_its_identity():
+    """One geometry-only model and run per seed serve every table: the 2D encoder, matcher, window and views
+    a table sets for its color rows do not make its geometry-only row another run. A color run, and a
+    classical method that reads the matcher (sift_dlt), keep them."""
+    from pcrcg.config import load_run_config
+    from pcrcg.tracking.hashing import HASH_EXCLUDE
+
+    def hashes(*overrides: str) -> tuple[str, str]:
+        cfg = load_run_config(["profile=tiny", *overrides])
+        return run_hash(cfg, HASH_EXCLUDE), run_hash(cfg, TRAIN_HASH_EXCLUDE)
+
+    geometry = hashes("features=none")
+    for table_settings in (["encoder2d=pri3d", "matcher2d=lightglue"], ["window_size=3", "views=3"],
+                           ["projection=explicit"], ["profile.lifting.image_size=[60,80]"]):
+        assert hashes("features=none", *table_settings) == geometry
+    assert hashes("features=none", "seed=1") != geometry
+    assert hashes("features=none", "model.voxel_size=0.07") != geometry
+    color = hashes("features=deep", "projection=explicit")
+    assert hashes("features=deep", "projection=explicit", "matcher2d=lightglue") != color
+    assert hashes("features=deep", "projection=explicit", "window_size=3") != color
+    dlt = load_run_config(["profile=tiny", "method=sift_dlt"])
+    dlt_orb = load_run_config(["profile=tiny", "method=sift_dlt", "matcher2d=orb"])
+    assert run_hash(dlt) != run_hash(dlt_orb)
+    # the plain config hash (what the 2D pretraining and the benchmarks use) is unchanged by this rule
+    cfg = load_run_config(["profile=tiny", "features=none"])
+    assert config_hash(cfg) != run_hash(cfg)
