@@ -598,7 +598,14 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                               f"a local file with the {enc_name} weights of the 2D encoder "
                               f"(set encoder2d.{key}=/path/to/file; nothing is downloaded)")
     _check_learned_2d(data, needs_2d)
+    # files of groups the run never reads are not its business: a geometry-only row of a table whose color rows
+    # use Pri3D weights runs before (or without) them
+    unused = set() if uses_encoder else {"encoder2d"}
+    if method == "learned" and not (needs_2d and color_enabled(data)):
+        unused |= {"features", "matcher2d"}
     for path, value in _weight_paths(data):
+        if path.split(".")[0] in unused:
+            continue
         if not Path(str(value)).expanduser().is_file():
             hint = ""
             if path == "encoder2d.weights" and enc_name == "pri3d":

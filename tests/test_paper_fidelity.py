@@ -10,7 +10,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from pcrcg.config import load_run_config
+from pcrcg.config import load_run_config, preflight
 from pcrcg.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -371,6 +371,11 @@ def test_a_run_makes_its_missing_pri3d_weights_once(tmp_path):
     geo = to_plain(load_run_config(["+experiment=main_results", "profile=tiny", "features=none",
                                     f"encoder2d.weights={weights}"], validate=False))
     assert make_missing_weights(geo, tmp_path, log=lambda m: None, run=fake_run) is None and len(calls) == 1
+    # ... and its preflight does not ask for them (the table's geometry row runs before the color rows made them)
+    preflight(geo)
+    with pytest.raises(ConfigError, match="encoder2d.weights"):
+        preflight(to_plain(load_run_config(["+experiment=main_results", "profile=tiny", "features=deep",
+                                            f"encoder2d.weights={weights}"], validate=False)))
 
 
 # --------------------------------------------------------------------------- item 12: the official training config
