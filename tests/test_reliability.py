@@ -540,7 +540,14 @@ def _entry(module: str, args: list[str], cwd: Path, monkeypatch, capsys) -> tupl
     ("pcrcg.prepare", ["profile=tiny", "seed=-1"], "seed=-1"),
     ("pcrcg.evaluate", ["profile=tiny", "mode=score", "benchmark_dir=/nowhere", "estimate_dir=/nowhere"], "/nowhere"),
     ("pcrcg.evaluate", ["profile=tiny", "mode=pair", "method=fpfh", "source=/nowhere.ply", "target=/x.ply"], "nowhere.ply"),
+    ("pcrcg.prepare", ["profile=tiny", "force=abc"], "force='abc'"),
+    ("pcrcg.prepare", ["data=nope"], "data/nope"),
+    ("pcrcg.prepare", ["profile=tiny", "nosuch=1"], "nosuch"),
+    ("pcrcg.prepare", ["profile=tiny", "data.root=[1,2"], "data.root='[1,2'"),
     ("pcrcg.report", ["tables=[nope]"], "nope"),
+    ("pcrcg.report", ["paper_csv=nowhere.csv"], "nowhere.csv: the paper's numbers file (paper_csv) does not exist"),
+    ("pcrcg.report", ["data.root=nowhere"], "data.root"),
+    ("pcrcg.report", ["profile=nope"], "profile/nope"),
     ("pcrcg.pretrain2d", ["profile=tiny", "train.lr=abc"], "train.lr"),
 ])
 def test_bad_values_are_one_line_and_exit_2(tmp_path, monkeypatch, capsys, module, args, text):
@@ -549,3 +556,4 @@ def test_bad_values_are_one_line_and_exit_2(tmp_path, monkeypatch, capsys, modul
     assert rc == 2, err[-2000:]
     assert len(err.strip().splitlines()) == 1 and text in err and "Traceback" not in err, err
     assert not (tmp_path / "mlflow.db").exists()
+    assert not list((tmp_path / "data").glob("*")) and not (tmp_path / "reports").exists()  # refused before work
