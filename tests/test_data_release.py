@@ -275,6 +275,37 @@ def test_partial_release_reads_fuses_and_keeps_the_pairs_it_can(tmp_path):
     assert np.median(d) < 0.02
 
 
+def test_checks_leave_the_official_overlaps_and_gt_info_to_3dmatch(tmp_path, capsys):
+    """pcrcg.data.checks on a release built by data=threedmatch: gt_overlap.log and gt.info are 3DMatch's (here
+    made up: 0.5 and 100 I), so they are reported as not applicable rather than re-derived and failed; the
+    poses are still checked against gt.log."""
+    import json
+
+    from pcrcg.data.checks import benchmark_writer, check_dataset, main
+
+    fragments, rgbd, bench = _fake_release(tmp_path, missing_frame=None)  # every pair kept: both benchmarks
+    root = prepare_dataset(_release_cfg(tmp_path / "out", fragments, rgbd, bench), log=lambda m: None)
+    assert benchmark_writer(root) == "3DMatch's code"
+    rep = check_dataset(root)
+    assert rep.ok, rep.failed
+    assert rep.not_applicable == [
+        "benchmark overlaps (gt_overlap.log): not applicable: written by 3DMatch's code, not this project's",
+        "gt.info: not applicable: written by 3DMatch's code, not this project's"]
+    assert any(m.startswith("pose/gt agreement over 6 pairs") for m in rep.passed), rep.passed
+    capsys.readouterr()
+    assert main([str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "n/a  gt.info: not applicable: written by 3DMatch's code, not this project's" in out and "FAIL" not in out
+    # the same files with a manifest that says this project wrote them: re-derived, and the made-up values fail
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest["params"]["name"] = "redkitchen"
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    assert benchmark_writer(root) is None
+    rep = check_dataset(root)
+    assert rep.not_applicable == []
+    assert [m.split(" ")[0] for m in rep.failed] == ["overlaps", "gt.info"], rep.failed
+
+
 def test_partial_release_errors(tmp_path):
     fragments, rgbd, bench = _fake_release(tmp_path)
     # nothing can be built: no fragment file and no frames for the scenes of the benchmarks
