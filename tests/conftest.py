@@ -1,4 +1,5 @@
-"""Shared fixtures: a tiny generated data set (made once per test session) and ../shared paths."""
+"""Shared fixtures: a tiny generated data set (made once per test session) and ../shared paths; tests marked
+``gpu`` skip themselves where there is no CUDA device."""
 
 from __future__ import annotations
 
@@ -11,6 +12,20 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked ``gpu`` are skipped, saying why, where torch sees no CUDA device."""
+    marked = [item for item in items if item.get_closest_marker("gpu") is not None]
+    if not marked:
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (torch.cuda.is_available() is false here)")
+    for item in marked:
+        item.add_marker(skip)
 
 
 def shared_path(*parts: str) -> Path:
