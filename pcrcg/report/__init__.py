@@ -8,6 +8,9 @@ protocol per benchmark, seeds, how well our trends follow the paper's).
 Tables that compare rows (``compare``) also test the paper's orderings with a paired bootstrap
 over the test pairs (``stats`` in conf/report.yaml; :mod:`pcrcg.report.orderings`), under the
 table and in ``<table>_orderings.csv``.
+
+Every report also writes the paper's findings (``findings`` in conf/report.yaml,
+:mod:`pcrcg.report.findings`): ``<out_dir>/findings.{md,tex,csv}`` and a section of README.md.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
@@ -30,6 +33,9 @@ from pcrcg.report.runs import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 
+if TYPE_CHECKING:  # imported where used: `python -m pcrcg.report.findings` runs that module as a script
+    from pcrcg.report.findings import FilledFindings
+
 __all__ = ["ReportResult", "generate_report", "tables_for_experiment", "write_experiment_tables"]
 
 
@@ -40,6 +46,7 @@ class ReportResult:
     files: list[Path] = field(default_factory=list)
     tables: dict[str, FilledTable] = field(default_factory=dict)
     identity: str = DEFAULT_IDENTITY
+    findings: FilledFindings | None = None
 
     @property
     def index(self) -> Path:
@@ -83,11 +90,16 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     out_dir = out_dir if out_dir.is_absolute() else base / out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     uri = resolve_tracking_uri(c.get("tracking_uri"), base)
+    from pcrcg.report.findings import fill_findings, parse_findings, write_findings
+
     experiments = sorted({e for n in names for e in specs[n].experiments})
-    runs = load_runs(uri, experiments)
+    findings = parse_findings(c.get("findings"))
+    found = findings.experiments if findings is not None else []
+    all_runs = load_runs(uri, sorted(set(experiments) | set(found)))
+    runs = all_runs[all_runs["experiment"].isin(experiments)] if len(all_runs) else all_runs
     paper = load_paper(c.get("paper_csv"))
     wanted = _profile_name(c.get("profile"))
-    profiles = {e: wanted or newest_profile(runs, e) for e in experiments}
+    profiles = {e: wanted or newest_profile(all_runs, e) for e in sorted(set(experiments) | set(found))}
 
     settings = StatsSettings.from_dict(c.get("stats"))
     identity = c.get("identity", DEFAULT_IDENTITY)
@@ -95,11 +107,15 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
         raise ConfigError("identity", identity, " | ".join(IDENTITIES))
 
     result = ReportResult(out_dir, uri, identity=identity)
-    with OutcomeSource(uri, base, runs) as source:
+    with OutcomeSource(uri, base, all_runs) as source:
         for name in names:
             table = fill_table(specs[name], runs, paper, profiles, identity)
             table.orderings = check_orderings(table, source, settings)
             result.tables[name] = table
+        if findings is not None:
+            result.findings = fill_findings(findings, all_runs, paper, profiles, source, settings, identity)
+    if result.findings is not None:
+        result.files += write_findings(result.findings, out_dir)
     for name, table in result.tables.items():
         for suffix, text in (("md", to_markdown(table)), ("tex", to_latex(table))):
             p = out_dir / f"{name}.{suffix}"
@@ -232,6 +248,12 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
         out.append(f"- {name}: " + ("; ".join(table.fidelity) if table.fidelity else "none found in its runs "
                                      "(or no runs yet)"))
     out.append("")
+    if result.findings is not None:
+        from pcrcg.report.findings import to_markdown as findings_markdown
+
+        out.append(findings_markdown(result.findings).replace(
+            "## The paper's findings, tested", "## The paper's findings, tested ([md](findings.md), "
+            "[tex](findings.tex), [csv](findings.csv))", 1))
     for name, table in result.tables.items():
         out.append(to_markdown(table))
         for suffix in ("recall", "coverage"):

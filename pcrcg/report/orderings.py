@@ -207,9 +207,11 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
     return line
 
 
-def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | None = None) -> list[OrderingLine]:
+def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | None = None,
+                    keep_empty: bool = False) -> list[OrderingLine]:
     """Every tested ordering of ``table`` (see module docstring). ``source``: an
-    :class:`~pcrcg.report.outcomes.OutcomeSource` (None: no intervals)."""
+    :class:`~pcrcg.report.outcomes.OutcomeSource` (None: no intervals). ``keep_empty``: also the lines
+    that neither the paper nor we can fill (the findings table says why each is missing)."""
     settings = settings or StatsSettings()
     groups = _groups(table.spec.columns)
     lines: list[OrderingLine] = []
@@ -231,7 +233,7 @@ def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | N
                     continue
                 line = _line(table, comp, metric, bench, variant, at, ref_cols, row_cols,  # type: ignore[arg-type]
                              source, settings)
-                if line.paper_diff is None and (not line.ref_runs or not line.row_runs):
+                if not keep_empty and line.paper_diff is None and (not line.ref_runs or not line.row_runs):
                     continue  # neither the paper nor we have both numbers: nothing to say
                 lines.append(line)
     return lines

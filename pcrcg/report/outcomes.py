@@ -3,7 +3,10 @@
 Where they come from, per run and benchmark, in this order:
 
 1. the run's ``pairs/<benchmark>.csv`` artifact (written by the evaluation stage,
-   :mod:`pcrcg.evaluation.pairs`);
+   :mod:`pcrcg.evaluation.pairs`); for a metric of another data set evaluated on the same run,
+   ``<prefix>/<benchmark>/rr_<N>`` (e.g. ``real-redkitchen/3DLoMatch/rr_5000``, logged by
+   ``python -m pcrcg.evaluate mode=tracked name=<prefix>``), its ``<prefix>/pairs/<benchmark>.csv``
+   (same format), and nothing else (step 2 needs the run's own data set);
 2. for runs logged before that file existed: recomputed with the same code from the run's
    ``estimates/<benchmark>`` artifacts (``est.log`` files) and the benchmark's ``gt.log`` /
    ``gt.info`` under the run's ``data.root`` (relative to the folder the report starts in);
@@ -51,6 +54,20 @@ def parse_key(key: str) -> tuple[str, str, int | None] | None:
     if not m:
         return None
     return m["bench"], m["metric"].upper(), int(m["n"]) if m["n"] else None
+
+
+def split_prefix(key: str) -> tuple[str | None, str]:
+    """``real-redkitchen/3DLoMatch/rr_5000`` -> (``real-redkitchen``, ``3DLoMatch/rr_5000``); a key of
+    the run's own data set (``3DLoMatch/rr_5000``) -> (None, the key)."""
+    parts = (key or "").rsplit("/", 2)
+    if len(parts) < 3 or not parts[0]:
+        return None, key
+    return parts[0], f"{parts[1]}/{parts[2]}"
+
+
+def pairs_artifact(benchmark: str, prefix: str | None = None) -> str:
+    """Artifact path of a run's per-pair outcomes on ``benchmark`` (of the data set ``prefix``; None: its own)."""
+    return f"{prefix}/pairs/{benchmark}.csv" if prefix else f"pairs/{benchmark}.csv"
 
 
 def _flag(v: Any) -> bool:
@@ -119,21 +136,25 @@ class OutcomeSource:
                 os.environ[key] = old
 
     # ------------------------------------------------------------------ per-pair table of a run
-    def frame(self, run_id: str, benchmark: str) -> tuple[pd.DataFrame | None, str]:
-        """(per-pair rows of ``pairs/<benchmark>.csv``, where they came from) or (None, why not)."""
-        key = (run_id, benchmark)
+    def frame(self, run_id: str, benchmark: str, prefix: str | None = None) -> tuple[pd.DataFrame | None, str]:
+        """(per-pair rows of ``[<prefix>/]pairs/<benchmark>.csv``, where they came from) or (None, why not)."""
+        key = (run_id, prefix or "", benchmark)
         if key not in self._frames:
             try:
-                self._frames[key] = self._load(run_id, benchmark)
+                self._frames[key] = self._load(run_id, benchmark, prefix)
             except Exception as e:  # noqa: BLE001 - reported in the table, never fatal
                 self._frames[key] = (None, f"per-pair outcomes of run {run_id[:8]} unreadable "
                                            f"({type(e).__name__}: {e})")
         return self._frames[key]
 
-    def _load(self, run_id: str, benchmark: str) -> tuple[pd.DataFrame | None, str]:
-        name = f"pairs/{benchmark}.csv"
-        if name in self._listed(run_id, "pairs"):
-            return _read_pairs(self._download(run_id, name)), "the run's pairs artifact"
+    def _load(self, run_id: str, benchmark: str, prefix: str | None = None) -> tuple[pd.DataFrame | None, str]:
+        name = pairs_artifact(benchmark, prefix)
+        if name in self._listed(run_id, name.rsplit("/", 1)[0]):
+            return _read_pairs(self._download(run_id, name)), (
+                f"the run's {prefix} pairs artifact" if prefix else "the run's pairs artifact")
+        if prefix:
+            return None, (f"run {run_id[:8]} logged no per-pair outcomes on {prefix} ({name}); evaluate it "
+                          f"again with python -m pcrcg.evaluate mode=tracked ... name={prefix}")
         est = f"estimates/{benchmark}"
         if not self._listed(run_id, est):
             return None, (f"run {run_id[:8]} logged neither per-pair outcomes ({name}) nor est.log files "
@@ -166,14 +187,15 @@ class OutcomeSource:
 
     # ------------------------------------------------------------------ outcome vectors
     def outcomes(self, run_id: str, metric_key: str, logged: float | None) -> Outcomes:
-        """The run's per-pair outcome (0/1) for ``metric_key`` (``<b>/rr[_N]``, ``<b>/fmr[_N]``),
+        """The run's per-pair outcome (0/1) for ``metric_key`` (``[<prefix>/]<b>/rr[_N]``, ``.../fmr[_N]``),
         checked against the ``logged`` value of that metric."""
-        parsed = parse_key(metric_key)
+        prefix, own_key = split_prefix(metric_key)
+        parsed = parse_key(own_key)
         if parsed is None:
             return Outcomes(None, reason=f"no per-pair statistic for {metric_key} (registration and "
                                          f"feature-matching recall only)")
         bench, metric, n = parsed
-        df, source = self.frame(run_id, bench)
+        df, source = self.frame(run_id, bench, prefix)
         if df is None:
             return Outcomes(None, reason=source)
         sel = df[df["n_points"].isna()] if n is None else df[df["n_points"] == n]

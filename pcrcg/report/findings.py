@@ -1,0 +1,499 @@
+"""The paper's findings, tested: ``reports/findings.{md,csv,tex}`` (``findings`` in conf/report.yaml).
+
+A finding is a claim of the paper (PCR-CG > Predator on 3DLoMatch, explicit > implicit, ...) written
+as named row selections (an experiment and ``where`` filters, the table rows' selection language;
+they may come from different experiments) and comparisons ``[reference, compared]`` that the claim
+says go the ``expect`` way. Each comparison is filled and tested exactly as a table's orderings
+(:func:`pcrcg.report.tables.fill_table`, :func:`pcrcg.report.orderings.check_orderings`): ours as
+the mean ± std over seeds of the difference, the paired bootstrap interval over the test pairs with
+the seeds pooled per pair, at every place of ``stats.at`` (5000 points, the mean over N).
+
+Verdict of a line: ``holds`` / ``reversed`` (the interval excludes 0 on the expected / the other
+side), ``not resolved`` (it includes 0, or there is no interval: the note says why), ``not run``
+(a row has no finished run: the note names the experiment, the row and the command that runs it).
+A claim's verdict combines its lines (every comparison at every place): ``reversed`` if any is,
+else ``not run`` if any is, else ``holds`` if all hold, else ``not resolved``.
+
+The real scene (``findings.real``, e.g. ``real-redkitchen``): the same selections and runs, the
+metrics ``<real>/<benchmark>/rr_<N>`` and per-pair artifacts ``<real>/pairs/<benchmark>.csv`` that
+``python -m pcrcg.evaluate mode=tracked name=<real>`` logs on them; "—" where no run has them.
+
+``python -m pcrcg.report.findings --jobs`` prints the jobs that run every row (``sweeps/findings.sh``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import pandas as pd
+
+from pcrcg.errors import ConfigError
+from pcrcg.report.orderings import MEAN, OrderingLine, StatsSettings, check_orderings
+from pcrcg.report.spec import Column, Comparison, Row, TableSpec
+from pcrcg.report.stats import HOLDS, REVERSED
+from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
+from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
+
+NOT_RESOLVED = "not resolved"
+NOT_RUN = "not run"
+EXPECT = {"higher": 1, "lower": -1}
+DASH = "—"
+
+
+@dataclass(frozen=True)
+class Selection:
+    """One named row of a finding: which runs, the job that makes them, the paper's entry."""
+
+    name: str
+    experiment: str
+    where: Mapping[str, Any]
+    job: str
+    paper_table: str
+    method: str
+    variant: str = ""
+
+    def row(self) -> Row:
+        return Row(method=self.method, variant=self.variant, label=self.name, where=dict(self.where),
+                   experiment=self.experiment)
+
+    def command(self, profile: str | None, seeds: Sequence[int]) -> str:
+        """The command that runs this row's configs (every seed of the findings)."""
+        parts = ["python -m pcrcg.run", f"+experiment={self.experiment}", self.job,
+                 f"profile={profile}" if profile else "", f"seed={','.join(str(s) for s in seeds)}" if seeds else "", "-m"]
+        return " ".join(p for p in parts if p)
+
+
+@dataclass(frozen=True)
+class Finding:
+    number: int
+    claim: str
+    benchmark: str
+    metric: str
+    n_points: tuple[int, ...] | None
+    expect: str
+    rows: tuple[Selection, ...]
+    compare: tuple[tuple[str, str], ...]
+
+    @property
+    def sign(self) -> int:
+        return EXPECT[self.expect]
+
+    def selection(self, name: str) -> Selection:
+        return next(s for s in self.rows if s.name == name)
+
+
+@dataclass(frozen=True)
+class FindingsSpec:
+    claims: tuple[Finding, ...]
+    real: str | None = None
+    real_root: str = "data/real-redkitchen"
+    seeds: tuple[int, ...] = (0, 1, 2)
+
+    @property
+    def experiments(self) -> list[str]:
+        return list(dict.fromkeys(s.experiment for f in self.claims for s in f.rows))
+
+    def jobs(self) -> list[tuple[str, str]]:
+        """Unique ``(experiment, overrides)`` jobs that run every row, in the claims' order."""
+        return list(dict.fromkeys((s.experiment, s.job) for f in self.claims for s in f.rows))
+
+    def real_command(self) -> str:
+        return (f"python -m pcrcg.evaluate mode=tracked experiments=[{','.join(self.experiments)}] "
+                f"data.root={self.real_root} name={self.real}")
+
+
+def _selection(raw: Mapping[str, Any], where: str) -> Selection:
+    for key in ("name", "experiment", "where", "paper"):
+        if not raw.get(key):
+            raise ConfigError(f"{where}.{key}", raw.get(key), "set for every row of a finding")
+    paper = raw["paper"]
+    if not isinstance(paper, Mapping) or not paper.get("table") or not paper.get("method"):
+        raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv")
+    return Selection(str(raw["name"]), str(raw["experiment"]), dict(raw["where"]), str(raw.get("job") or ""),
+                     str(paper["table"]), str(paper["method"]), str(paper.get("variant") or ""))
+
+
+def _sizes(raw: Any, where: str) -> tuple[int, ...] | None:
+    if raw is None:
+        return None
+    try:
+        return tuple(int(n) for n in raw)
+    except (TypeError, ValueError):
+        raise ConfigError(where, raw, "a list of sample sizes, or null") from None
+
+
+def parse_findings(raw: Mapping[str, Any] | None) -> FindingsSpec | None:
+    """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings)."""
+    if not raw:
+        return None
+    claims = []
+    for k, c in enumerate(raw.get("claims") or [], 1):
+        where = f"findings.claims[{k - 1}]"
+        rows = tuple(_selection(r, f"{where}.rows[{i}]") for i, r in enumerate(c.get("rows") or []))
+        names = [r.name for r in rows]
+        if len(set(names)) != len(names) or len(rows) < 2:
+            raise ConfigError(f"{where}.rows", names, "at least two rows with different names")
+        compare = []
+        for item in c.get("compare") or []:
+            if not isinstance(item, (list, tuple)) or len(item) != 2 or any(str(n) not in names for n in item):
+                raise ConfigError(f"{where}.compare", item, "a pair [reference, compared] of row names: " + ", ".join(names))
+            compare.append((str(item[0]), str(item[1])))
+        if not compare:
+            raise ConfigError(f"{where}.compare", c.get("compare"), "at least one pair [reference, compared]")
+        expect = str(c.get("expect", raw.get("expect", "higher")))
+        if expect not in EXPECT:
+            raise ConfigError(f"{where}.expect", expect, " | ".join(EXPECT))
+        sizes = c["n_points"] if "n_points" in c else raw.get("n_points")
+        claims.append(Finding(k, str(c.get("claim") or f"finding {k}"), str(c.get("benchmark", raw.get("benchmark", "3DLoMatch"))),
+                              str(c.get("metric", raw.get("metric", "RR"))), _sizes(sizes, f"{where}.n_points"),
+                              expect, rows, tuple(compare)))
+    if not claims:
+        raise ConfigError("findings.claims", raw.get("claims"), "a list of claims (or findings: null)")
+    real = raw.get("real")
+    seeds = tuple(int(s) for s in (raw.get("seeds") or ()))
+    return FindingsSpec(tuple(claims), str(real) if real else None, str(raw.get("real_root") or "data/real-redkitchen"),
+                        seeds)
+
+
+# ---------------------------------------------------------------------------------------------- filling
+
+
+@dataclass
+class FindingLine:
+    """One comparison of a finding at one place of ``stats.at``: ours on the generated data and the real scene."""
+
+    finding: Finding
+    reference: Selection
+    compared: Selection
+    ours: OrderingLine
+    real: OrderingLine | None = None
+    verdict: str = NOT_RESOLVED
+    real_verdict: str | None = None
+    note: str | None = None
+    real_note: str | None = None
+
+    @property
+    def comparison(self) -> str:
+        return f"{self.compared.name} − {self.reference.name}"
+
+    @property
+    def where(self) -> str:
+        at = self.ours.at
+        return " ".join(p for p in (self.finding.benchmark, self.finding.metric,
+                                    "" if at is None else ("mean over N" if at == MEAN else str(at))) if p)
+
+
+@dataclass
+class FilledFindings:
+    spec: FindingsSpec
+    lines: list[FindingLine]
+    profiles: Mapping[str, str | None]
+    identity: str = DEFAULT_IDENTITY
+    codes: dict[str, int] = field(default_factory=dict)
+
+    def claim_verdict(self, finding: Finding, real: bool = False) -> str | None:
+        """The claim's verdict over its lines (module docstring); None when the real column is left out."""
+        vs = [ln.real_verdict if real else ln.verdict for ln in self.lines if ln.finding is finding]
+        if real and (self.spec.real is None or all(v is None for v in vs)):
+            return None
+        if REVERSED in vs:
+            return REVERSED
+        if NOT_RUN in vs:
+            return NOT_RUN
+        if vs and all(v == HOLDS for v in vs):
+            return HOLDS
+        return NOT_RESOLVED if vs else None
+
+    def identity_text(self) -> str:
+        rule = ("same config and code (identity=config_and_code): each row counts the runs of one code version, "
+                "its newest run's" if same_code(self.identity) else
+                "same config (identity=config): a row's seeds may come from different code versions")
+        codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
+        return f"Runs counted: {rule}; code versions behind the findings: {codes}."
+
+
+def line_verdict(sign: int, line: OrderingLine) -> str:
+    """holds / reversed / not resolved / not run of one compared line (``sign``: the expected one)."""
+    if not line.ref_runs or not line.row_runs:
+        return NOT_RUN
+    iv = line.interval
+    if iv is None:
+        return NOT_RESOLVED
+    if iv.lo > 0:
+        return HOLDS if sign > 0 else REVERSED
+    if iv.hi < 0:
+        return HOLDS if sign < 0 else REVERSED
+    return NOT_RESOLVED
+
+
+def _table(finding: Finding, benchmark: str) -> TableSpec:
+    rows = tuple(s.row() for s in finding.rows)
+    by_name = {r.label: r for r in rows}
+    cols = tuple(Column(benchmark, finding.metric, n) for n in (finding.n_points or (None,)))
+    return TableSpec(name=f"finding {finding.number}", title=finding.claim, experiment=finding.rows[0].experiment,
+                     rows=rows, columns=cols, paper_table="",
+                     compare=tuple(Comparison(by_name[a], by_name[b]) for a, b in finding.compare))
+
+
+def _fill(finding: Finding, benchmark: str, runs: pd.DataFrame, paper: pd.DataFrame | None,
+          profiles: Mapping[str, str | None], identity: str, source: Any, settings: StatsSettings) -> FilledTable:
+    table = fill_table(_table(finding, benchmark), runs, paper if paper is not None else pd.DataFrame(
+        columns=["table", "method", "variant", "benchmark", "metric", "n_points", "value"]), profiles, identity)
+    if paper is not None:  # each row's number from its own paper table
+        for cell in table.cells:
+            sel = finding.selection(cell.row.label)
+            cell.paper = _paper_value(paper, sel.paper_table, cell.row, cell.col)
+    table.orderings = check_orderings(table, source, settings, keep_empty=True)
+    return table
+
+
+def _not_run_note(table: FilledTable, ref: Selection, row: Selection, profiles: Mapping[str, str | None],
+                  seeds: Sequence[int]) -> str:
+    """Each compared row without a finished run: why (the experiment and its filters, from the table
+    machinery) and the command that runs it."""
+    parts = []
+    for sel in (ref, row):
+        cells = [c for c in table.cells if c.row.label == sel.name]
+        reason = next((c.reason or "no number of ours" for c in cells if c.mean is None), None)
+        if reason is not None:
+            parts.append(f"{sel.name}: {reason}; run it: `{sel.command(profiles.get(sel.experiment), seeds)}`")
+    return "; ".join(parts) + " (or sweeps/findings.sh)" if parts else "no run of ours has both rows"
+
+
+def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, profiles: Mapping[str, str | None],
+                  source: Any, settings: StatsSettings, identity: str = DEFAULT_IDENTITY) -> FilledFindings:
+    """Every finding's lines from ``runs`` (the runs of ``spec.experiments``), see module docstring."""
+    lines: list[FindingLine] = []
+    used: set[str] = set()
+    for f in spec.claims:
+        ours = _fill(f, f.benchmark, runs, paper, profiles, identity, source, settings)
+        real = (_fill(f, f"{spec.real}/{f.benchmark}", runs, None, profiles, identity, source, settings)
+                if spec.real else None)
+        used |= {r.run_id for c in ours.cells for r in c.runs}
+        real_lines = real.orderings if real is not None else [None] * len(ours.orderings)
+        for o, r in zip(ours.orderings, real_lines):
+            ref, row = f.selection(o.comparison.ref.label), f.selection(o.comparison.row.label)
+            fl = FindingLine(f, ref, row, o, r, verdict=line_verdict(f.sign, o))
+            if fl.verdict == NOT_RUN:
+                fl.note = _not_run_note(ours, ref, row, profiles, spec.seeds)
+            elif o.interval is None:
+                fl.note = f"no interval: {o.reason}"
+            if r is not None:
+                fl.real_verdict = line_verdict(f.sign, r)
+                if fl.verdict == NOT_RUN:
+                    fl.real_verdict, fl.real_note = NOT_RUN, fl.note
+                elif fl.real_verdict == NOT_RUN or r.interval is None:
+                    if not r.ref_runs or not r.row_runs:
+                        fl.real_verdict = None
+                        fl.real_note = (f"not evaluated on {spec.real} (no run of a compared row has "
+                                        f"{spec.real}/{f.benchmark}/ metrics); evaluate the runs: "
+                                        f"`{spec.real_command()}`")
+                    else:
+                        fl.real_note = f"no interval on {spec.real}: {r.reason}"
+            lines.append(fl)
+    codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
+    return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()})
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+
+
+def _signed(v: float | None) -> str:
+    return DASH if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:+.1f}"
+
+
+def _ours(line: OrderingLine | None) -> str:
+    if line is None or not line.ref_runs or not line.row_runs or line.ours_diff is None:
+        return DASH
+    text = _signed(line.ours_diff)
+    if line.n_seeds > 1 and line.ours_std is not None:
+        text += f" ± {line.ours_std:.1f} ({line.n_seeds} seeds)"
+    return text
+
+
+def _interval(line: OrderingLine | None) -> str:
+    iv = None if line is None else line.interval
+    return DASH if iv is None else f"[{_signed(iv.lo)}, {_signed(iv.hi)}]"
+
+
+class _Notes:
+    def __init__(self) -> None:
+        self.items: list[str] = []
+
+    def mark(self, note: str | None) -> str:
+        if not note:
+            return ""
+        if note not in self.items:
+            self.items.append(note)
+        return f" [{self.items.index(note) + 1}]"
+
+
+def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list[str]:
+    claim = f"{fl.finding.number}. {fl.finding.claim}" if first else ""
+    out = [claim, fl.comparison, fl.where, _signed(fl.ours.paper_diff), _ours(fl.ours), _interval(fl.ours),
+           fl.verdict + notes.mark(fl.note)]
+    if real:
+        out += [_ours(fl.real), _interval(fl.real), (fl.real_verdict or DASH) + notes.mark(fl.real_note)]
+    return out
+
+
+def intro(filled: FilledFindings) -> str:
+    iv = next((ln.ours.interval for ln in filled.lines if ln.ours.interval is not None), None)
+    how = (f"paired bootstrap {iv.level:.0%} interval over the test pairs ({iv.n_boot} resamples within each "
+           f"scene, seed {iv.seed}; seeds pooled per pair, as the tables' orderings)" if iv is not None else
+           "paired bootstrap interval over the test pairs, as the tables' orderings")
+    real = (f" The {filled.spec.real} columns: the same runs evaluated on the real scene "
+            f"(`{filled.spec.real_command()}`); few pairs, wide intervals." if filled.spec.real else "")
+    return ("Δ = compared − reference, in points. Paper Δ: from the paper's tables (paper_tables.csv). Ours: the "
+            "difference of our means over seeds, ± the std of the per-seed difference where both rows ran two or "
+            f"more seeds. Interval: {how}. Verdict: *holds* (the interval excludes 0 on the claim's side), "
+            "*reversed* (on the other side), *not resolved* (it includes 0, or no interval: see the note), "
+            "*not run* (a row has no finished run: the note says which and the command). A claim's verdict: "
+            "reversed if any of its lines is, else not run if any is, else holds if all hold, else not resolved."
+            + real)
+
+
+def to_markdown(filled: FilledFindings, heading: str = "##") -> str:
+    real = filled.spec.real is not None
+    notes = _Notes()
+    profiles = sorted({str(p) for e in filled.spec.experiments if (p := filled.profiles.get(e))})
+    out = [f"{heading} The paper's findings, tested", "",
+           f"Profile of our runs: `{', '.join(profiles) or 'any'}`. {intro(filled)}", ""]
+    head = "| # | Claim | Verdict |" + (f" {filled.spec.real} |" if real else "")
+    out += [head, "|---:|---|---|" + ("---|" if real else "")]
+    for f in filled.spec.claims:
+        cells = [str(f.number), f.claim, filled.claim_verdict(f) or DASH]
+        if real:
+            cells.append(filled.claim_verdict(f, real=True) or DASH)
+        out.append("| " + " | ".join(cells) + " |")
+    out += ["", "| Claim | Comparison | Where | Paper Δ | Ours Δ | 95% interval | Verdict |"
+            + (f" {filled.spec.real} Δ | {filled.spec.real} interval | {filled.spec.real} verdict |" if real else ""),
+            "|---|---|---|---:|---:|---:|---|" + ("---:|---:|---|" if real else "")]
+    seen: set[int] = set()
+    for fl in filled.lines:
+        first = fl.finding.number not in seen
+        seen.add(fl.finding.number)
+        out.append("| " + " | ".join(_line_texts(fl, real, notes, first)) + " |")
+    out.append("")
+    if notes.items:
+        out += ["Notes:", ""] + [f"{i}. {n}" for i, n in enumerate(notes.items, 1)] + [""]
+    out += [filled.identity_text(), ""]
+    return "\n".join(out)
+
+
+def to_latex(filled: FilledFindings) -> str:
+    from pcrcg.report.render import latex_escape
+
+    real = filled.spec.real is not None
+    notes = _Notes()
+    ncol = 7 + (3 if real else 0)
+    header = ["Claim", "Comparison", "Where", r"Paper $\Delta$", r"Ours $\Delta$", "Interval", "Verdict"]
+    if real:
+        header += [latex_escape(f"{filled.spec.real} {t}") for t in ("Δ", "interval", "verdict")]
+    out = ["% generated by python -m pcrcg.report", r"\begin{table}[h]", r"\centering",
+           f"\\caption{{The paper's findings, tested. {latex_escape(intro(filled).replace('*', '').replace('`', ''))}}}",
+           r"\begin{tabular}{lll" + "r" * 3 + "l" + ("rrl" if real else "") + "}", r"\toprule",
+           " & ".join(header) + r" \\", r"\midrule"]
+    seen: set[int] = set()
+    for fl in filled.lines:
+        first = fl.finding.number not in seen
+        seen.add(fl.finding.number)
+        out.append(" & ".join(latex_escape(t) for t in _line_texts(fl, real, notes, first)) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    out += ["% notes:"] + [f"% [{i}] {n}" for i, n in enumerate(notes.items, 1)]
+    out.append(f"% {filled.identity_text()}")
+    assert ncol == len(header)
+    return "\n".join(out) + "\n"
+
+
+CSV_FIELDS = ("finding", "claim", "claim_verdict", "comparison", "reference", "compared", "reference_experiment",
+              "compared_experiment", "benchmark", "metric", "at", "expect", "paper_diff", "ours_diff", "ours_std",
+              "n_seeds", "ci_low", "ci_high", "verdict", "note", "real", "real_ours_diff", "real_ours_std",
+              "real_n_seeds", "real_ci_low", "real_ci_high", "real_verdict", "real_claim_verdict", "real_note",
+              "reference_run_ids", "compared_run_ids", "code_versions")
+
+
+def _r(v: float | None) -> Any:
+    return "" if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 4)
+
+
+def csv_rows(filled: FilledFindings) -> Iterable[dict]:
+    codes = ";".join(filled.codes)
+    for fl in filled.lines:
+        o, r = fl.ours, fl.real
+        yield {
+            "finding": fl.finding.number, "claim": fl.finding.claim, "claim_verdict": filled.claim_verdict(fl.finding),
+            "comparison": fl.comparison, "reference": fl.reference.name, "compared": fl.compared.name,
+            "reference_experiment": fl.reference.experiment, "compared_experiment": fl.compared.experiment,
+            "benchmark": fl.finding.benchmark, "metric": fl.finding.metric, "at": "" if o.at is None else o.at,
+            "expect": fl.finding.expect, "paper_diff": _r(o.paper_diff),
+            "ours_diff": _r(o.ours_diff) if o.ref_runs and o.row_runs else "",
+            "ours_std": _r(o.ours_std) if o.n_seeds > 1 else "", "n_seeds": o.n_seeds,
+            "ci_low": _r(o.interval.lo) if o.interval else "", "ci_high": _r(o.interval.hi) if o.interval else "",
+            "verdict": fl.verdict, "note": fl.note or "", "real": filled.spec.real or "",
+            "real_ours_diff": _r(r.ours_diff) if r is not None and r.ref_runs and r.row_runs else "",
+            "real_ours_std": _r(r.ours_std) if r is not None and r.n_seeds > 1 else "",
+            "real_n_seeds": r.n_seeds if r is not None else "",
+            "real_ci_low": _r(r.interval.lo) if r is not None and r.interval else "",
+            "real_ci_high": _r(r.interval.hi) if r is not None and r.interval else "",
+            "real_verdict": fl.real_verdict or "", "real_claim_verdict": filled.claim_verdict(fl.finding, True) or "",
+            "real_note": fl.real_note or "", "reference_run_ids": ";".join(o.ref_runs),
+            "compared_run_ids": ";".join(o.row_runs), "code_versions": codes,
+        }
+
+
+def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
+    """``findings.md``, ``findings.tex`` and ``findings.csv`` in ``out_dir``; returns them."""
+    md, tex, path = out_dir / "findings.md", out_dir / "findings.tex", out_dir / "findings.csv"
+    md.write_text(to_markdown(filled))
+    tex.write_text(to_latex(filled))
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        w.writerows(csv_rows(filled))
+    return [md, tex, path]
+
+
+# ---------------------------------------------------------------------------------------------- jobs (sweeps/findings.sh)
+
+
+def load_findings(path: str | Path | None = None) -> FindingsSpec | None:
+    """The ``findings`` of conf/report.yaml (or of the report config at ``path``)."""
+    from omegaconf import OmegaConf
+
+    from pcrcg.config import CONF_DIR
+
+    cfg = OmegaConf.load(path or CONF_DIR / "report.yaml")
+    node = cfg.get("findings")
+    return parse_findings(OmegaConf.to_container(node, resolve=True) if node is not None else None)  # type: ignore[arg-type]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m pcrcg.report.findings --jobs | --experiments | --real-command``: what sweeps/findings.sh runs."""
+    p = argparse.ArgumentParser(prog="python -m pcrcg.report.findings", description=main.__doc__)
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--jobs", action="store_true", help="one job a line: <experiment> [overrides...]")
+    what.add_argument("--experiments", action="store_true", help="the experiments, comma-separated")
+    what.add_argument("--seeds", action="store_true", help="the seeds, comma-separated")
+    p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
+    args = p.parse_args(argv)
+    spec = load_findings(args.config)
+    if spec is None:
+        return 0
+    if args.jobs:
+        for exp, job in spec.jobs():
+            print(f"{exp} {job}".strip())
+    elif args.experiments:
+        print(",".join(spec.experiments))
+    else:
+        print(",".join(str(s) for s in spec.seeds))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# The sweep of record of the findings table (reports/findings.md): exactly the configs that the
+# `findings` of conf/report.yaml select, every seed of `findings.seeds` (0,1,2), as two single-core
+# lanes (as sweeps/cpu_two_lanes.sh), then every model of it on the real redkitchen scene, then the report.
+#
+#   sweeps/findings.sh [profile]          # profile: cpu (default) | tiny | paper
+#   DRY_RUN=1 sweeps/findings.sh cpu      # print the commands, run nothing
+#
+# The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`), so a finding
+# added to conf/report.yaml is swept here. Resumable: a run skips its config when a FINISHED run of the
+# same config and code exists, so relaunching (after a crash, over several sittings) runs only what is
+# missing; the lanes share trained models (checkpoints/, under a file lock) and one MLflow store.
+# Jobs alternate between the lanes in the spec's order (each lane: one job after another; the cpu
+# profile trains with one torch thread).
+set -u
+cd "$(dirname "$0")/.."
+PROFILE=${1:-cpu}
+LOGS=${LOGS:-outputs/findings-$PROFILE}
+export MLFLOW_TRACKING_URI=${MLFLOW_TRACKING_URI:-sqlite:///$PWD/mlflow.db}
+# shellcheck source=sweeps/lib.sh
+. sweeps/lib.sh
+REAL_ROOT=${REAL_ROOT:-data/real-redkitchen}
+SHARED=${SHARED:-../shared/data}
+
+SEEDS=$("$PYTHON" -m pcrcg.report.findings --seeds) || exit 2
+EXPERIMENTS=$("$PYTHON" -m pcrcg.report.findings --experiments) || exit 2
+mapfile -t JOBS < <("$PYTHON" -m pcrcg.report.findings --jobs)
+if [ "${#JOBS[@]}" -eq 0 ]; then
+  echo "findings.sh: conf/report.yaml defines no findings (findings.claims)" >&2
+  exit 2
+fi
+COMMON="profile=$PROFILE runtime.report_on_end=false${SEEDS:+ seed=$SEEDS}"
+[ "$DRY_RUN" = 1 ] || mkdir -p "$LOGS"
+
+lane() {  # lane <number>: every other job of the list, starting at job <number> (1 or 2)
+  local k=$(( $1 - 1 )) L=$LOGS/lane$1.log line
+  while [ "$k" -lt "${#JOBS[@]}" ]; do
+    line=${JOBS[$k]}
+    # shellcheck disable=SC2086  # "<experiment> [overrides...]"
+    job "$L" $line
+    k=$(( k + 2 ))
+  done
+}
+
+if [ "$DRY_RUN" = 1 ]; then
+  echo "# lane 1"; lane 1
+  echo "# lane 2"; lane 2
+else
+  # a brand-new SQLite store is created once, before the lanes write to it at once
+  "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
+  lane 1 & p1=$!
+  lane 2 & p2=$!
+  wait $p1 $p2
+fi
+
+# the real scene: built once from ../shared/data (when it is here), then every run of the findings' experiments on it
+L=$LOGS/real.log
+if [ -d "$SHARED" ]; then
+  if [ ! -f "$REAL_ROOT/manifest.json" ]; then
+    step "$L" "$PYTHON" -m pcrcg.prepare data=threedmatch data.source.fragments_dir="$SHARED/real-3dmatch-fragments" \
+      data.source.rgbd_dir="$SHARED/real-rgbd" data.root="$REAL_ROOT"
+  fi
+  step "$L" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$EXPERIMENTS]" data.root="$REAL_ROOT" \
+    name=real-redkitchen profile="$PROFILE"
+else
+  echo "findings.sh: $SHARED is not here: no real-scene evaluation (the findings show — in its columns)" >&2
+fi
+step "$L" "$PYTHON" -m pcrcg.report profile="$PROFILE"
+[ "$DRY_RUN" = 1 ] || echo "Findings: reports/findings.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

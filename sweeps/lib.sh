@@ -1,0 +1,40 @@
+# Shared by the sweep scripts (source it): one job of a lane, logged, or printed with DRY_RUN=1.
+#
+#   PYTHON   the interpreter (default .venv/bin/python)
+#   COMMON   overrides added to every job (e.g. "profile=cpu runtime.report_on_end=false")
+#   DRY_RUN  1: print each command instead of running it (nothing is written)
+
+PYTHON=${PYTHON:-.venv/bin/python}
+DRY_RUN=${DRY_RUN:-0}
+
+job() {  # job <lane log> <experiment> [overrides...]: one sweep (-m) of an experiment, appended to the lane's log
+  local log=$1 exp=$2
+  shift 2
+  if [ "$DRY_RUN" = 1 ]; then
+    echo "$PYTHON -m pcrcg.run +experiment=$exp $COMMON $* -m"
+    return 0
+  fi
+  local start rc
+  start=$(date +%s)
+  echo "== $(date +%T) $exp $*" >>"$log"
+  # shellcheck disable=SC2086  # COMMON is a list of overrides
+  "$PYTHON" -m pcrcg.run +experiment="$exp" $COMMON "$@" -m >>"$log.out" 2>&1
+  rc=$?
+  echo "== $(date +%T) $exp $* -> rc $rc in $(( $(date +%s) - start )) s" >>"$log"
+}
+
+step() {  # step <lane log> <command...>: any other command of a lane (pretrain, evaluate, report), logged
+  local log=$1
+  shift
+  if [ "$DRY_RUN" = 1 ]; then
+    echo "$*"
+    return 0
+  fi
+  local start rc
+  start=$(date +%s)
+  echo "== $(date +%T) $*" >>"$log"
+  "$@" >>"$log.out" 2>&1
+  rc=$?
+  echo "== $(date +%T) $* -> rc $rc in $(( $(date +%s) - start )) s" >>"$log"
+  return $rc
+}

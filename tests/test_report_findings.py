@@ -1,0 +1,246 @@
+"""The findings table (reports/findings.*): verdicts from paired intervals, seeds, the real scene, the sweep's jobs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from pcrcg.config import CONF_DIR
+from pcrcg.errors import ConfigError
+from pcrcg.evaluation.pairs import PAIR_COLUMNS
+from pcrcg.report import generate_report
+from pcrcg.report.findings import HOLDS, NOT_RESOLVED, NOT_RUN, REVERSED, load_findings, parse_findings
+from pcrcg.report.outcomes import split_prefix
+from pcrcg.report.stats import recall
+
+ROOT = Path(__file__).resolve().parents[1]
+N = (5000, 2500, 1000, 500, 250)
+SCENES = {"kitchen": 24, "office": 16}  # counted pairs per scene of the generated 3DLoMatch
+REAL = {"redkitchen": 10}  # the real scene: few pairs
+PREFIX = "real-redkitchen"
+
+
+def _cfg(out_dir: Path, uri: str, **extra) -> dict:
+    raw = OmegaConf.load(CONF_DIR / "report.yaml")
+    for key in ("hydra", "defaults"):
+        raw.pop(key, None)
+    cfg = OmegaConf.to_container(raw, resolve=True)
+    cfg.update(out_dir=str(out_dir), tracking_uri=uri, tables=["window_size"], profile="cpu", **extra)
+    return cfg
+
+
+def _pairs_csv(path: Path, ok: dict[str, np.ndarray]) -> float:
+    """Write a per-pair file in the evaluation's format (every pair counted, the same outcome at every N);
+    returns the protocol's recall of these outcomes."""
+    rows = [{"scene": s, "i": k, "j": k + 2, "n_points": n, "counted": 1, "present": 1, "registered": int(v),
+             "error": "", "rre": "", "rte": "", "inlier_ratio": ""}
+            for n in N for s, vals in ok.items() for k, v in enumerate(vals)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame(rows, columns=list(PAIR_COLUMNS)).to_csv(path, index=False)
+    return recall(np.concatenate(list(ok.values())).astype(float), [s for s, v in ok.items() for _ in v])
+
+
+def _run(tr, work: Path, name: str, params: dict, tags: dict, ok: dict, real_ok: dict | None = None) -> str:
+    """A FINISHED run registering the pairs ``ok`` (3DLoMatch, every N), and ``real_ok`` on the real scene."""
+    folder = work / name.replace(" ", "_").replace("=", "-")
+    metrics = {f"3DLoMatch/rr_{n}": _pairs_csv(folder / "pairs" / "3DLoMatch.csv", ok) for n in N}
+    if real_ok is not None:
+        rr = _pairs_csv(folder / PREFIX / "pairs" / "3DLoMatch.csv", real_ok)
+        metrics.update({f"{PREFIX}/3DLoMatch/rr_{n}": rr for n in N})
+    rid = tr.start(name, {"experiment": tr.experiment_name, "git_sha": "d" * 40, "code_version": "v1",
+                          "profile": "cpu", "config_hash": name, **tags})
+    tr.log_params(rid, params)
+    tr.log_metrics(rid, metrics)
+    tr.log_artifact(rid, folder / "pairs", "pairs")
+    if real_ok is not None:
+        tr.log_artifact(rid, folder / PREFIX / "pairs", f"{PREFIX}/pairs")
+    tr.finish(rid)
+    return rid
+
+
+def _base(rng, scenes: dict[str, int], p: float) -> dict[str, np.ndarray]:
+    return {s: rng.random(n) < p for s, n in scenes.items()}
+
+
+def _more(rng, ok: dict[str, np.ndarray], frac: float) -> dict[str, np.ndarray]:
+    """Every pair ``ok`` registers and ``frac`` of each scene's pairs more."""
+    out = {}
+    for s, v in ok.items():
+        free = np.flatnonzero(~v)
+        out[s] = v.copy()
+        out[s][rng.choice(free, size=min(len(free), int(round(frac * len(v)))), replace=False)] = True
+    return out
+
+
+def _store(root: Path, flip: bool = False) -> str:
+    """main_results (3 seeds, real scene too), window_size (one seed) and views (one seed) runs.
+
+    PCR-CG = Predator + 35% of the pairs (``flip``: the other way round); windows: 11x11 = 3x3 + 35%,
+    7x7 = 11x11 (no difference), 17x17 = 11x11 + 35%; 2 views = 1 view. No projection runs."""
+    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.store import ensure_store
+
+    uri = f"sqlite:///{root}/mlflow.db"
+    ensure_store(uri)
+    rng = np.random.default_rng(5)
+    work = root / "work"
+    tr = RunTracker(uri, "main_results")
+    for seed in (0, 1, 2):
+        weak, weak_real = _base(rng, SCENES, 0.3), _base(rng, REAL, 0.1)
+        strong, strong_real = _more(rng, weak, 0.35 + 0.05 * seed), _more(rng, weak_real, 0.7)
+        if flip:
+            weak, strong, weak_real, strong_real = strong, weak, strong_real, weak_real
+        for label, ok, real in (("Predator", weak, weak_real), ("PCR-CG", strong, strong_real)):
+            _run(tr, work, f"{label} seed={seed}", {"seed": seed, "encoder2d.name": "pri3d"}, {"label": label}, ok, real)
+    tr = RunTracker(uri, "window_size")
+    w3 = _base(rng, SCENES, 0.3)
+    w11 = _more(rng, w3, 0.35)
+    for ws, ok in ((3, w3), (7, w11), (11, w11), (17, _more(rng, w11, 0.35))):
+        _run(tr, work, f"window_size={ws}", {"window_size": ws, "seed": 0, "encoder2d.name": "pri3d"},
+             {"label": "PCR-CG"}, ok)
+    tr = RunTracker(uri, "views")
+    for v in (1, 2):
+        _run(tr, work, f"views={v}", {"views": v, "seed": 0, "projection.name": "implicit", "encoder2d.name": "pri3d"},
+             {"label": "PCR-CG"}, w3)
+    return uri
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    root = tmp_path_factory.mktemp("findings")
+    uri = _store(root)
+    out = root / "reports"
+    result = generate_report(_cfg(out, uri), base_dir=root, command="python -m pcrcg.report")
+    return {"root": root, "out": out, "result": result, "uri": uri}
+
+
+def _lines(report, number: int, comparison: str | None = None, at=5000):
+    f = report["result"].findings
+    return [ln for ln in f.lines if ln.finding.number == number and ln.ours.at == at
+            and (comparison is None or ln.comparison == comparison)]
+
+
+def _claim(report, number: int, real: bool = False):
+    f = report["result"].findings
+    return f.claim_verdict(f.spec.claims[number - 1], real=real)
+
+
+def test_the_spec_has_the_papers_eight_claims_and_their_differences():
+    spec = load_findings()
+    assert len(spec.claims) == 8 and spec.real == PREFIX and spec.seeds == (0, 1, 2)
+    assert [len(f.compare) for f in spec.claims] == [1, 1, 2, 1, 2, 3, 1, 2]
+    assert {s.experiment for f in spec.claims for s in f.rows} == {
+        "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init"}
+    assert ("projection", "features=deep encoder2d=pri3d projection=explicit") in spec.jobs()  # shared by 2 and 3, once
+    assert len(spec.jobs()) == len(set(spec.jobs())) == 21
+
+
+def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
+    [line] = _lines(report, 1)
+    assert line.verdict == HOLDS and line.ours.interval.lo > 0
+    assert line.ours.paper_diff == pytest.approx(66.3 - 59.8)  # the paper's +6.5 at 5000 points
+    assert line.ours.n_seeds == 3 and line.ours.ours_std > 0
+    assert line.ours.interval.n_pairs == sum(SCENES.values())
+    assert _claim(report, 1) == HOLDS
+    [mean] = _lines(report, 1, at="mean")
+    assert mean.verdict == HOLDS and mean.where == "3DLoMatch RR mean over N"
+    md = (report["out"] / "findings.md").read_text()
+    assert "| 1. PCR-CG (explicit, deep, Pri3D, 2 views) > Predator on 3DLoMatch | PCR-CG − Predator | 3DLoMatch RR 5000 | +6.5 | +" in md
+    assert " (3 seeds) | [+" in md
+
+
+def test_the_real_scene_column_reads_the_prefixed_metrics_and_artifacts(report):
+    [line] = _lines(report, 1)
+    assert line.real is not None and line.real.interval is not None
+    assert line.real.interval.n_pairs == 10 and line.real.interval.n_scenes == 1
+    assert line.real_verdict == HOLDS and line.real.source == f"the run's {PREFIX} pairs artifact"
+    assert _claim(report, 1, real=True) == HOLDS
+    # runs that were not evaluated on the real scene: a dash, and the command that does it
+    [win] = _lines(report, 6, "11x11 − 3x3")
+    assert win.verdict == HOLDS and win.real_verdict is None and "mode=tracked" in win.real_note
+    md = (report["out"] / "findings.md").read_text()
+    assert f"{PREFIX} verdict |" in md and "— [" in md
+    assert split_prefix(f"{PREFIX}/3DLoMatch/rr_5000") == (PREFIX, "3DLoMatch/rr_5000")
+    assert split_prefix("3DLoMatch/rr_5000") == (None, "3DLoMatch/rr_5000")
+
+
+def test_a_window_holds_one_is_not_resolved_one_is_reversed(report):
+    assert _lines(report, 6, "11x11 − 3x3")[0].verdict == HOLDS
+    same = _lines(report, 6, "11x11 − 7x7")[0]
+    assert same.verdict == NOT_RESOLVED and same.ours.interval.lo <= 0 <= same.ours.interval.hi
+    rev = _lines(report, 6, "11x11 − 17x17")[0]
+    assert rev.verdict == REVERSED and rev.ours.interval.hi < 0 and rev.ours.paper_diff == pytest.approx(2.2)
+    assert _claim(report, 6) == REVERSED  # 11x11 is not the best of the four
+    assert _lines(report, 4)[0].verdict == NOT_RESOLVED and _claim(report, 4) == NOT_RESOLVED
+
+
+def test_a_finding_without_runs_is_not_run_and_says_which_and_how(report):
+    [line] = _lines(report, 2)
+    assert line.verdict == NOT_RUN and line.ours.interval is None
+    assert "no run of experiment 'projection'" in line.note and "projection.name=implicit" in line.note
+    assert ("python -m pcrcg.run +experiment=projection features=deep encoder2d=pri3d projection=implicit "
+            "profile=cpu seed=0,1,2 -m") in line.note
+    assert _claim(report, 2) == NOT_RUN and _claim(report, 2, real=True) == NOT_RUN
+    md = (report["out"] / "findings.md").read_text()
+    assert "| 2 | explicit > implicit projection for deep (Pri3D) features | not run | not run |" in md
+
+
+def test_files_index_and_code_versions(report):
+    out = report["out"]
+    df = pd.read_csv(out / "findings.csv")
+    assert set(df["finding"]) == set(range(1, 9))
+    row = df[(df["finding"] == 1) & (df["at"] == "5000")].iloc[0]
+    assert row["verdict"] == HOLDS and row["n_seeds"] == 3 and row["ci_low"] > 0 and row["real_verdict"] == HOLDS
+    assert row["claim_verdict"] == HOLDS and row["code_versions"] == "v1"
+    assert len(row["compared_run_ids"].split(";")) == 3
+    md = (out / "findings.md").read_text()
+    assert "code versions behind the findings: v1 (12 runs)" in md  # 6 main_results, 4 windows, 2 views
+    assert "identity=config_and_code" in md
+    index = (out / "README.md").read_text()
+    assert "## The paper's findings, tested ([md](findings.md)" in index
+    tex = (out / "findings.tex").read_text()
+    assert r"PCR-CG $-$ Predator & 3DLoMatch RR 5000" in tex
+
+
+def test_the_verdicts_flip_with_the_outcomes(report, tmp_path):
+    uri = _store(tmp_path, flip=True)
+    result = generate_report(_cfg(tmp_path / "reports", uri), base_dir=tmp_path)
+    flipped = result.findings.claim_verdict(result.findings.spec.claims[0])
+    assert flipped == REVERSED and _claim(report, 1) == HOLDS
+    real = result.findings.claim_verdict(result.findings.spec.claims[0], real=True)
+    assert real == REVERSED
+
+
+def test_findings_can_be_left_out_and_bad_specs_name_the_setting(report, tmp_path):
+    result = generate_report(_cfg(tmp_path / "none", report["uri"], findings=None), base_dir=report["root"])
+    assert result.findings is None and not (tmp_path / "none" / "findings.md").exists()
+    no_real = generate_report(_cfg(tmp_path / "noreal", report["uri"], findings={
+        **_cfg(tmp_path, report["uri"])["findings"], "real": None}), base_dir=report["root"])
+    assert no_real.findings.lines[0].real is None and PREFIX not in (tmp_path / "noreal" / "findings.md").read_text()
+    raw = _cfg(tmp_path, report["uri"])["findings"]
+    raw["claims"][0]["compare"] = [["Predator", "nobody"]]
+    with pytest.raises(ConfigError, match=r"findings.claims\[0\].compare"):
+        parse_findings(raw)
+
+
+def test_the_sweep_runs_every_rows_job_with_every_seed():
+    env = {**os.environ, "DRY_RUN": "1", "PYTHON": str(ROOT / ".venv" / "bin" / "python")}
+    out = subprocess.run(["bash", "sweeps/findings.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    runs = [ln for ln in out.splitlines() if " -m pcrcg.run " in ln]
+    spec = load_findings()
+    for f in spec.claims:
+        for s in f.rows:
+            want = f"+experiment={s.experiment} profile=cpu runtime.report_on_end=false seed=0,1,2 {s.job} -m"
+            assert sum(ln.endswith(want) for ln in runs) == 1, (f.claim, s.name)
+    assert len(runs) == len(spec.jobs())
+    lanes = out.split("# lane 2")
+    assert lanes[0].count(" -m pcrcg.run ") == 11 and lanes[1].count(" -m pcrcg.run ") == 10
+    assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
+    assert out.strip().splitlines()[-1].endswith("-m pcrcg.report profile=cpu")
