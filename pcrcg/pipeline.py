@@ -353,7 +353,11 @@ def _make_2d_weights(cfg: DictConfig, job: JobInfo, data: Mapping[str, Any]) -> 
 
 
 def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
-    """Run one configured job end to end (see module docstring). Returns what happened."""
+    """Run one configured job end to end (see module docstring). Returns what happened.
+
+    Steps: check the config and make the 2D weights it names, hash it, open the store (closing this
+    config's stale runs), skip a config that already finished, run the stages in a tracked run
+    (:func:`_execute`), then say where the results are (:func:`_conclude`)."""
     t0 = time.perf_counter()
     data = to_plain(cfg)  # resolved once: interpolation is the slow part of OmegaConf
     validate_run_config(cfg, job.choices, job.search_dirs, data=data)
@@ -362,34 +366,64 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     name = run_name(job.overrides)
     job.output_dir.mkdir(parents=True, exist_ok=True)
 
-    tracker = None
-    if cfg.logger.name == "mlflow":
-        from pcrcg.tracking.runs import RunTracker
-        from pcrcg.tracking.store import resolve_tracking_uri
+    tracker = _open_tracker(cfg, job, h)
+    if tracker is not None and cfg.logger.skip_finished:
+        skipped = _skip_if_finished(cfg, job, tracker, h, name)
+        if skipped is not None:
+            return skipped
 
-        uri = resolve_tracking_uri(cfg.logger.tracking_uri, job.base_dir)
-        tracker = RunTracker(uri, cfg.experiment_name)
-        for stale in tracker.close_stale(h):
-            print(f"[run] closed stale run {stale} of config hash {h} as KILLED (its process is gone)")
-        if cfg.logger.skip_finished:
-            code = code_version() if same_code(identity(cfg)) else None
-            done = tracker.find_finished(h, code)
-            if done is not None:
-                outcome = RunOutcome("skipped", h, name, done.run_id, uri, output_dir=str(job.output_dir))
-                write_status(job.output_dir, outcome)
-                print(f"[run] skipped {name!r}: run {done.run_id} with config hash {h}"
-                      f"{f' and code version {code}' if code else ''} already FINISHED in experiment {cfg.experiment_name!r}")
-                return outcome
-            older = tracker.find_finished(h) if code else None
-            if older is not None:
-                print(f"[run] run {older.run_id} with config hash {h} FINISHED with other code: running {name!r} "
-                      f"again with code version {code} (logger.identity=config would skip it)")
-
-    from pcrcg.cli import interrupt_reason, sigterm_as_interrupt
-
-    run_id = None
     ctx = RunContext(cfg=cfg, job=job, out_dir=job.output_dir, device=resolve_device(OmegaConf.select(cfg, "runtime.device")),
                      tracker=tracker)
+    outcome = _execute(ctx, data, h, name, t0)
+    if outcome.status == "finished":
+        _conclude(cfg, job, outcome)
+    return outcome
+
+
+def _open_tracker(cfg: DictConfig, job: JobInfo, h: str) -> "RunTracker | None":
+    """The MLflow store of ``logger.tracking_uri`` (None when ``logger.name`` is not mlflow), with this
+    config hash's stale runs (RUNNING, their process gone) closed as KILLED."""
+    if cfg.logger.name != "mlflow":
+        return None
+    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.store import resolve_tracking_uri
+
+    uri = resolve_tracking_uri(cfg.logger.tracking_uri, job.base_dir)
+    tracker = RunTracker(uri, cfg.experiment_name)
+    for stale in tracker.close_stale(h):
+        print(f"[run] closed stale run {stale} of config hash {h} as KILLED (its process is gone)")
+    return tracker
+
+
+def _skip_if_finished(cfg: DictConfig, job: JobInfo, tracker: "RunTracker", h: str, name: str) -> RunOutcome | None:
+    """The outcome ``skipped`` (written to the job's folder) when a run of config hash ``h`` already
+    FINISHED (with this code version under ``logger.identity=config_and_code``), else None: run it."""
+    code = code_version() if same_code(identity(cfg)) else None
+    done = tracker.find_finished(h, code)
+    if done is not None:
+        outcome = RunOutcome("skipped", h, name, done.run_id, tracker.uri, output_dir=str(job.output_dir))
+        write_status(job.output_dir, outcome)
+        print(f"[run] skipped {name!r}: run {done.run_id} with config hash {h}"
+              f"{f' and code version {code}' if code else ''} already FINISHED in experiment {cfg.experiment_name!r}")
+        return outcome
+    older = tracker.find_finished(h) if code else None
+    if older is not None:
+        print(f"[run] run {older.run_id} with config hash {h} FINISHED with other code: running {name!r} "
+              f"again with code version {code} (logger.identity=config would skip it)")
+    return None
+
+
+def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, t0: float) -> RunOutcome:
+    """Start the tracked run, run the stages (:func:`_work`) and return the outcome ``finished``.
+
+    Ctrl-C / SIGTERM: the run is closed as KILLED and the interruption re-raised. Any other error: the
+    run is closed as FAILED (a :class:`ConfigError`: not run), written to the job's folder, and re-raised
+    outside a sweep (always for ``SystemExit``); inside a sweep its outcome is returned."""
+    from pcrcg.cli import interrupt_reason, sigterm_as_interrupt
+
+    cfg, job, tracker = ctx.cfg, ctx.job, ctx.tracker
+    uri = tracker.uri if tracker else None
+    run_id = None
     stage = "start"
     try:
         with sigterm_as_interrupt():  # SIGTERM closes the run like Ctrl-C does
@@ -400,13 +434,13 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
             for stage in _work(ctx, data, h, t0):
                 pass
         metrics = ctx.metrics
-        outcome = RunOutcome("finished", h, name, run_id, tracker.uri if tracker else None, metrics,
-                             output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
+        return RunOutcome("finished", h, name, run_id, uri, metrics,
+                          output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
     except KeyboardInterrupt as e:  # Ctrl-C (also inside Lightning's fit: see models.train), SIGTERM
         reason = f"{interrupt_reason(e)} during {stage}"
         if tracker is not None and run_id is not None:
             tracker.kill(run_id, reason)
-        outcome = RunOutcome("killed", h, name, run_id, tracker.uri if tracker else None, error=reason,
+        outcome = RunOutcome("killed", h, name, run_id, uri, error=reason,
                              output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
         write_status(job.output_dir, outcome)
         print(f"[run] killed {name!r}: {reason} (run {run_id or '-'} closed as KILLED)", file=sys.stderr)
@@ -415,7 +449,7 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         not_run = isinstance(e, ConfigError)
         if tracker is not None and run_id is not None:
             tracker.fail(run_id, e, not_run=not_run)
-        outcome = RunOutcome("not_run" if not_run else "failed", h, name, run_id, tracker.uri if tracker else None,
+        outcome = RunOutcome("not_run" if not_run else "failed", h, name, run_id, uri,
                              error=f"{type(e).__name__}: {one_line(e)}", output_dir=str(job.output_dir),
                              seconds=time.perf_counter() - t0)
         write_status(job.output_dir, outcome)
@@ -423,6 +457,11 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         if not job.multirun or isinstance(e, SystemExit):
             raise
         return outcome
+
+
+def _conclude(cfg: DictConfig, job: JobInfo, outcome: RunOutcome) -> None:
+    """A finished run: its status written to the job's folder, where its results are printed, and (a
+    single run with ``runtime.report_on_end``) its experiment's tables written."""
     write_status(job.output_dir, outcome)
     _print_where(cfg, outcome)
     if not job.multirun and outcome.tracking_uri and OmegaConf.select(cfg, "runtime.report_on_end", default=False):
@@ -431,7 +470,6 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
         write_experiment_tables(str(cfg.experiment_name), outcome.tracking_uri,
                                 OmegaConf.select(cfg, "profile.name"),
                                 str(OmegaConf.select(cfg, "runtime.report_dir", default="reports")), job.base_dir, "[run]")
-    return outcome
 
 
 def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
