@@ -2,6 +2,7 @@
 # Every paper table at the cpu profile on a 2-core machine, as two single-core lanes.
 #
 #   sweeps/cpu_two_lanes.sh            # both lanes in the background, then the report
+#   DRY_RUN=1 sweeps/cpu_two_lanes.sh  # print the commands, run nothing
 #
 # The same jobs as `sweeps/all_tables.sh cpu hydra/launcher=joblib2`, split by hand so that both
 # cores stay busy: a table's sweep holds jobs of very different lengths (geometry-only ~6 min,
@@ -13,22 +14,14 @@
 # window_size=3 -m` is one job of that table. Relaunching runs only what is missing.
 set -u
 cd "$(dirname "$0")/.."
-PYTHON=${PYTHON:-.venv/bin/python}
 LOGS=${LOGS:-outputs/lanes}
-mkdir -p "$LOGS"
+[ "${DRY_RUN:-0}" = 1 ] || mkdir -p "$LOGS"
 export MLFLOW_TRACKING_URI=${MLFLOW_TRACKING_URI:-sqlite:///$PWD/mlflow.db}
 COMMON="profile=cpu runtime.report_on_end=false"
 
-job() {  # job <lane log> <experiment> [overrides...]
-  local log=$1 exp=$2
-  shift 2
-  local start rc
-  start=$(date +%s)
-  echo "== $(date +%T) $exp $*" >>"$log"
-  "$PYTHON" -m pcrcg.run +experiment="$exp" $COMMON "$@" -m >>"$log.out" 2>&1
-  rc=$?
-  echo "== $(date +%T) $exp $* -> rc $rc in $(( $(date +%s) - start )) s" >>"$log"
-}
+# job <lane log> <experiment> [overrides...] and step <lane log> <command...> (DRY_RUN=1 prints them)
+# shellcheck source=sweeps/lib.sh
+. sweeps/lib.sh
 
 lane1() {
   local L=$LOGS/lane1.log
@@ -47,10 +40,7 @@ lane2() {
   local L=$LOGS/lane2.log
   job "$L" main_results features=none
   job "$L" sift_dlt
-  echo "== $(date +%T) pretrain2d" >>"$L"
-  "$PYTHON" -m pcrcg.pretrain2d profile=cpu >>"$L.out" 2>&1
-  local rc=$?
-  echo "== $(date +%T) pretrain2d -> rc $rc" >>"$L"
+  step "$L" "$PYTHON" -m pcrcg.pretrain2d profile=cpu
   job "$L" backbone_2d
   job "$L" window_size window_size=17
   job "$L" views views=3
@@ -61,9 +51,13 @@ lane2() {
 }
 
 # a brand-new SQLite store is created once, before the lanes write to it at once
-"$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
-lane1 & p1=$!
-lane2 & p2=$!
-wait $p1 $p2
-"$PYTHON" -m pcrcg.report profile=cpu
-echo "Tables: reports/README.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"
+if [ "$DRY_RUN" = 1 ]; then
+  lane1; lane2
+else
+  "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
+  lane1 & p1=$!
+  lane2 & p2=$!
+  wait $p1 $p2
+fi
+run "$PYTHON" -m pcrcg.report profile=cpu
+[ "$DRY_RUN" = 1 ] || echo "Tables: reports/README.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

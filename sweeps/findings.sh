@@ -65,5 +65,5 @@ if [ -d "$SHARED" ]; then
 else
   echo "findings.sh: $SHARED is not here: no real-scene evaluation (the findings show — in its columns)" >&2
 fi
-step "$L" "$PYTHON" -m pcrcg.report profile="$PROFILE"
+run "$PYTHON" -m pcrcg.report profile="$PROFILE"
 [ "$DRY_RUN" = 1 ] || echo "Findings: reports/findings.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

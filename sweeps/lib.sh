@@ -38,3 +38,11 @@ step() {  # step <lane log> <command...>: any other command of a lane (pretrain,
   echo "== $(date +%T) $* -> rc $rc in $(( $(date +%s) - start )) s" >>"$log"
   return $rc
 }
+
+run() {  # run <command...>: in the foreground (output to the terminal), or printed with DRY_RUN=1
+  if [ "$DRY_RUN" = 1 ]; then
+    echo "$*"
+    return 0
+  fi
+  "$@"
+}

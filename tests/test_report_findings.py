@@ -229,8 +229,9 @@ def test_findings_can_be_left_out_and_bad_specs_name_the_setting(report, tmp_pat
         parse_findings(raw)
 
 
-def test_the_sweep_runs_every_rows_job_with_every_seed():
-    env = {**os.environ, "DRY_RUN": "1", "PYTHON": str(ROOT / ".venv" / "bin" / "python")}
+def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
+    env = {**os.environ, "DRY_RUN": "1", "PYTHON": str(ROOT / ".venv" / "bin" / "python"), "SHARED": str(tmp_path),
+           "REAL_ROOT": str(tmp_path / "real"), "LOGS": str(tmp_path / "logs")}
     out = subprocess.run(["bash", "sweeps/findings.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
                          timeout=120, check=True).stdout
     runs = [ln for ln in out.splitlines() if " -m pcrcg.run " in ln]
@@ -242,5 +243,7 @@ def test_the_sweep_runs_every_rows_job_with_every_seed():
     assert len(runs) == len(spec.jobs())
     lanes = out.split("# lane 2")
     assert lanes[0].count(" -m pcrcg.run ") == 11 and lanes[1].count(" -m pcrcg.run ") == 10
+    assert f"-m pcrcg.prepare data=threedmatch data.source.fragments_dir={tmp_path}/real-3dmatch-fragments" in out
     assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
     assert out.strip().splitlines()[-1].endswith("-m pcrcg.report profile=cpu")
+    assert not (tmp_path / "logs").exists()  # a dry run writes nothing
