@@ -247,3 +247,21 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
     assert out.strip().splitlines()[-1].endswith("-m pcrcg.report profile=cpu")
     assert not (tmp_path / "logs").exists()  # a dry run writes nothing
+
+
+def test_line_verdicts_follow_the_expected_sign_and_need_both_rows():
+    from pcrcg.report.findings import line_verdict
+    from pcrcg.report.orderings import OrderingLine
+    from pcrcg.report.spec import Comparison, Row
+    from pcrcg.report.stats import Interval
+
+    a, b = Row("A", where={"x": 1}), Row("B", where={"x": 2})
+    line = OrderingLine(Comparison(a, b), "RR", "3DLoMatch", "", 5000, ref_runs=["r1"], row_runs=["r2"])
+    line.interval = Interval(4.0, 1.0, 7.0, 0.95, 40, 2, 2000, 0)
+    assert line_verdict(+1, line) == HOLDS and line_verdict(-1, line) == REVERSED
+    line.interval = Interval(0.5, -1.0, 2.0, 0.95, 40, 2, 2000, 0)
+    assert line_verdict(+1, line) == NOT_RESOLVED
+    line.interval = None  # runs on both sides, but no per-pair outcomes
+    assert line_verdict(+1, line) == NOT_RESOLVED
+    line.row_runs = []
+    assert line_verdict(+1, line) == NOT_RUN
