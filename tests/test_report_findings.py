@@ -15,7 +15,7 @@ from pcrcg.config import CONF_DIR
 from pcrcg.errors import ConfigError
 from pcrcg.evaluation.pairs import PAIR_COLUMNS
 from pcrcg.report import generate_report
-from pcrcg.report.findings import HOLDS, NOT_RESOLVED, NOT_RUN, REVERSED, load_findings, parse_findings
+from pcrcg.report.findings import HOLDS, NOT_RESOLVED, NOT_RUN, REVERSED, load_findings, ours_text, parse_findings
 from pcrcg.report.outcomes import split_prefix
 from pcrcg.report.stats import recall
 
@@ -151,7 +151,8 @@ def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
     [mean] = _lines(report, 1, at="mean")
     assert mean.verdict == HOLDS and mean.where == "3DLoMatch RR mean over N"
     md = (report["out"] / "findings.md").read_text()
-    assert "| 1. PCR-CG (explicit, deep, Pri3D, 2 views) > Predator on 3DLoMatch | PCR-CG − Predator | 3DLoMatch RR 5000 | +6.5 | +" in md
+    assert ("| 1. PCR-CG (explicit, deep, Pri3D, 2 views) > Predator on 3DLoMatch | PCR-CG − Predator "
+            "| 3DLoMatch RR 5000 | +6.5 | +") in md
     assert " (3 seeds) | [+" in md
 
 
@@ -265,3 +266,32 @@ def test_line_verdicts_follow_the_expected_sign_and_need_both_rows():
     assert line_verdict(+1, line) == NOT_RESOLVED
     line.row_runs = []
     assert line_verdict(+1, line) == NOT_RUN
+
+
+@pytest.mark.parametrize("identity, n_runs, codes", [
+    ("config_and_code", 1, "code versions behind the findings: A (2 runs), B (1 run)."),
+    ("config", 2, "code versions behind the findings: A (3 runs), B (1 run)."),
+])
+def test_the_identity_rule_picks_the_runs_and_the_findings_name_their_code(tmp_path, identity, n_runs, codes):
+    """PCR-CG's seed 0 run again by newer code B: under config_and_code only that run counts for PCR-CG."""
+    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.store import ensure_store
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    ensure_store(uri)
+    rng = np.random.default_rng(9)
+    tr = RunTracker(uri, "main_results")
+    for seed in (0, 1):
+        weak = _base(rng, SCENES, 0.3)
+        _run(tr, tmp_path, f"Predator seed={seed}", {"seed": seed}, {"label": "Predator", "code_version": "A"}, weak)
+        _run(tr, tmp_path, f"PCR-CG seed={seed}", {"seed": seed, "encoder2d.name": "pri3d"},
+             {"label": "PCR-CG", "code_version": "A"}, _more(rng, weak, 0.4))
+    _run(tr, tmp_path, "PCR-CG seed=0 again", {"seed": 0, "encoder2d.name": "pri3d"},
+         {"label": "PCR-CG", "code_version": "B"}, _base(rng, SCENES, 0.9))
+    result = generate_report(_cfg(tmp_path / "out", uri, identity=identity), base_dir=tmp_path)
+    [line] = [ln for ln in result.findings.lines if ln.finding.number == 1 and ln.ours.at == 5000]
+    assert len(line.ours.row_runs) == n_runs and len(line.ours.ref_runs) == 2
+    assert line.ours.n_seeds == (0 if n_runs == 1 else 2)  # a std only where both rows ran two or more seeds
+    assert (" ± " in ours_text(line.ours)) == (n_runs == 2)
+    md = (tmp_path / "out" / "findings.md").read_text()
+    assert codes in md and f"identity={identity}" in md

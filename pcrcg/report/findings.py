@@ -149,7 +149,8 @@ def parse_findings(raw: Mapping[str, Any] | None) -> FindingsSpec | None:
         if expect not in EXPECT:
             raise ConfigError(f"{where}.expect", expect, " | ".join(EXPECT))
         sizes = c["n_points"] if "n_points" in c else raw.get("n_points")
-        claims.append(Finding(k, str(c.get("claim") or f"finding {k}"), str(c.get("benchmark", raw.get("benchmark", "3DLoMatch"))),
+        bench = str(c.get("benchmark", raw.get("benchmark", "3DLoMatch")))
+        claims.append(Finding(k, str(c.get("claim") or f"finding {k}"), bench,
                               str(c.get("metric", raw.get("metric", "RR"))), _sizes(sizes, f"{where}.n_points"),
                               expect, rows, tuple(compare)))
     if not claims:
@@ -307,7 +308,8 @@ def _signed(v: float | None) -> str:
     return DASH if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:+.1f}"
 
 
-def _ours(line: OrderingLine | None) -> str:
+def ours_text(line: OrderingLine | None) -> str:
+    """Ours: the difference of our means, ± the std of the per-seed difference (two or more seeds on both rows)."""
     if line is None or not line.ref_runs or not line.row_runs or line.ours_diff is None:
         return DASH
     text = _signed(line.ours_diff)
@@ -335,10 +337,10 @@ class _Notes:
 
 def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list[str]:
     claim = f"{fl.finding.number}. {fl.finding.claim}" if first else ""
-    out = [claim, fl.comparison, fl.where, _signed(fl.ours.paper_diff), _ours(fl.ours), _interval(fl.ours),
+    out = [claim, fl.comparison, fl.where, _signed(fl.ours.paper_diff), ours_text(fl.ours), _interval(fl.ours),
            fl.verdict + notes.mark(fl.note)]
     if real:
-        out += [_ours(fl.real), _interval(fl.real), (fl.real_verdict or DASH) + notes.mark(fl.real_note)]
+        out += [ours_text(fl.real), _interval(fl.real), (fl.real_verdict or DASH) + notes.mark(fl.real_note)]
     return out
 
 
