@@ -424,8 +424,12 @@ def _window_mean(values: Sequence[float], window: int, last: bool) -> float:
 
 def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], None] = print,
              progress: bool | None = None) -> dict[str, Any]:
-    """Run the 2D pretraining described by ``cfg`` (``conf/pretrain2d.yaml``); see the module docstring."""
-    from pcrcg.tracking.hashing import config_hash, flatten
+    """Run the 2D pretraining described by ``cfg`` (``conf/pretrain2d.yaml``); see the module docstring.
+
+    Steps: the settings checked and a checkpoint of the same config reused; the data (:func:`_data_root`,
+    :func:`_sequences`, :func:`_training_pairs`, :func:`_held_out_items`); the seeded model trained and
+    evaluated in a tracked run (:func:`_train_and_evaluate`); the checkpoint written (:func:`_save`)."""
+    from pcrcg.tracking.hashing import config_hash
 
     t0 = time.time()
     base = Path(base_dir) if base_dir is not None else Path.cwd()
@@ -444,52 +448,13 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
     device = _resolve_device(_get(data, "runtime.device"))
 
     # ---- data
-    data_cfg = dict(data["data"])
-    data_cfg["root"] = str(_abs(data_cfg.get("root", ""), base))
-    if data.get("prepare", True):
-        from pcrcg.data.materialise import prepare_dataset
-
-        root = Path(prepare_dataset(data_cfg, seed=int(data.get("data_seed", 0)), log=log))
-    else:
-        root = Path(data_cfg["root"])
-        if not root.is_dir():
-            raise DataError(root, "data root (data.root) does not exist (prepare=false uses it as it is)")
+    root = _data_root(data, base, log)
     layout = Layout(root)
     rng = np.random.default_rng(s.seed)
     cache = FrameCache(int(_get(data, "runtime.cache_frames", 4000) or 0))
-    train_seqs = load_split_sequences(layout, s.train_splits, s, log, "train.splits", cache)
-    if not train_seqs:
-        raise ConfigError("train.splits", list(s.train_splits),
-                          f"splits with scenes in {layout.root / 'splits'} (these have none)")
-    eval_split = s.eval_split
-    eval_scenes = [] if eval_split == HOLDOUT else (
-        layout.scenes(eval_split) if layout.split_file(eval_split).is_file() else [])
-    if eval_split != HOLDOUT and not eval_scenes:
-        log(f"[pretrain2d] split {eval_split!r} has no scenes: evaluating on held-out frames instead "
-            f"(the last {s.holdout_fraction:.0%} of every training sequence)")
-        eval_split = HOLDOUT
-    if eval_split == HOLDOUT:
-        eval_seqs = []
-        for k, sq in enumerate(train_seqs):
-            cut = len(sq) - max(2, int(round(len(sq) * s.holdout_fraction)))
-            if cut < 2:
-                raise DataError(layout.rgbd_dir(sq.scene) / sq.seq,
-                                f"only {len(sq)} frames: too few to hold some out (eval.holdout_fraction)")
-            eval_seqs.append(sq.subset(range(cut, len(sq))))
-            train_seqs[k] = sq.subset(range(cut))
-    else:
-        eval_seqs = load_split_sequences(layout, [eval_split], s, log, "eval.split", cache)
-    pairs = scene_pairs(train_seqs, s, rng, s.max_per_scene)
-    if not pairs:
-        raise ConfigError("pairs.min_overlap", s.min_overlap,
-                          f"bounds that some training frame pairs meet (none of {sum(len(q) for q in train_seqs)} "
-                          f"frames in {root} pair up with overlap in [{s.min_overlap}, {s.max_overlap}] and "
-                          f"frame gap in [{s.min_gap}, {s.max_gap}])")
-    eval_pairs_all = scene_pairs(eval_seqs, s, np.random.default_rng(s.seed + 1), None)
-    items = eval_items(eval_seqs, eval_pairs_all, s, np.random.default_rng(s.seed + 2))
-    if not items:
-        raise ConfigError("eval.split", s.eval_split, f"a split (or {HOLDOUT}) whose frames pair up (no held-out "
-                                                      f"view pairs found in {root})")
+    train_seqs, eval_seqs, eval_split = _sequences(layout, s, log, cache)
+    pairs = _training_pairs(train_seqs, s, rng, root)
+    items = _held_out_items(eval_seqs, s, root)
     n_frames = sum(len(q) for q in train_seqs)
     log(f"[pretrain2d] {root}: {len(pairs)} training pairs from {n_frames} frames of {len(train_seqs)} sequences; "
         f"{len(items)} held-out pairs ({eval_split}); images {s.image_size or 'native'}; device {device}")
@@ -510,13 +475,7 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             "reused": False, "run_id": run_id,
         })
         result["seconds"] = round(time.time() - t0, 1)
-        meta = {"config_hash": h, "profile": _get(data, "profile.name"), "data_root": str(root),
-                "image_size": result["image_size"], "created": time.strftime("%Y-%m-%d %H:%M:%S"),
-                "config": flatten({k: v for k, v in data.items() if k not in ("hydra",)}), "result": dict(result)}
-        from pcrcg.tracking.git import git_info
-
-        meta["git_sha"] = git_info()[0]
-        save_pri3d_checkpoint(model, out, meta)
+        _save(model, out, data, h, root, result)
         if tracker is not None:
             _finish_tracking(tracker, run_id, result, out)
     except BaseException as e:
@@ -524,6 +483,87 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             tracker.fail(run_id, e)
         raise
     return result
+
+
+def _data_root(data: Mapping[str, Any], base: Path, log: Callable[[str], None]) -> Path:
+    """The data set's root (``data.root`` against ``base``): prepared first (``prepare=true``), else used as it is
+    (a DataError when it does not exist)."""
+    data_cfg = dict(data["data"])
+    data_cfg["root"] = str(_abs(data_cfg.get("root", ""), base))
+    if data.get("prepare", True):
+        from pcrcg.data.materialise import prepare_dataset
+
+        return Path(prepare_dataset(data_cfg, seed=int(data.get("data_seed", 0)), log=log))
+    root = Path(data_cfg["root"])
+    if not root.is_dir():
+        raise DataError(root, "data root (data.root) does not exist (prepare=false uses it as it is)")
+    return root
+
+
+def _sequences(layout: Layout, s: Settings, log: Callable[[str], None],
+               cache: FrameCache) -> tuple[list[FrameSequence], list[FrameSequence], str]:
+    """The training sequences of ``train.splits``, the held-out sequences and the name of what they are: the
+    scenes of ``eval.split``, or (``holdout``, also when that split has no scenes) the last
+    ``eval.holdout_fraction`` of every training sequence, cut off the training sequences."""
+    train_seqs = load_split_sequences(layout, s.train_splits, s, log, "train.splits", cache)
+    if not train_seqs:
+        raise ConfigError("train.splits", list(s.train_splits),
+                          f"splits with scenes in {layout.root / 'splits'} (these have none)")
+    eval_split = s.eval_split
+    eval_scenes = [] if eval_split == HOLDOUT else (
+        layout.scenes(eval_split) if layout.split_file(eval_split).is_file() else [])
+    if eval_split != HOLDOUT and not eval_scenes:
+        log(f"[pretrain2d] split {eval_split!r} has no scenes: evaluating on held-out frames instead "
+            f"(the last {s.holdout_fraction:.0%} of every training sequence)")
+        eval_split = HOLDOUT
+    if eval_split != HOLDOUT:
+        return train_seqs, load_split_sequences(layout, [eval_split], s, log, "eval.split", cache), eval_split
+    eval_seqs = []
+    for k, sq in enumerate(train_seqs):
+        cut = len(sq) - max(2, int(round(len(sq) * s.holdout_fraction)))
+        if cut < 2:
+            raise DataError(layout.rgbd_dir(sq.scene) / sq.seq,
+                            f"only {len(sq)} frames: too few to hold some out (eval.holdout_fraction)")
+        eval_seqs.append(sq.subset(range(cut, len(sq))))
+        train_seqs[k] = sq.subset(range(cut))
+    return train_seqs, eval_seqs, eval_split
+
+
+def _training_pairs(train_seqs: Sequence[FrameSequence], s: Settings, rng: np.random.Generator,
+                    root: Path) -> list[ViewPair]:
+    """The training view pairs (at most ``pairs.max_per_scene`` a scene, drawn with ``rng``); a ConfigError
+    naming the pair bounds when none is found."""
+    pairs = scene_pairs(train_seqs, s, rng, s.max_per_scene)
+    if not pairs:
+        raise ConfigError("pairs.min_overlap", s.min_overlap,
+                          f"bounds that some training frame pairs meet (none of {sum(len(q) for q in train_seqs)} "
+                          f"frames in {root} pair up with overlap in [{s.min_overlap}, {s.max_overlap}] and "
+                          f"frame gap in [{s.min_gap}, {s.max_gap}])")
+    return pairs
+
+
+def _held_out_items(eval_seqs: Sequence[FrameSequence], s: Settings, root: Path) -> list[EvalItem]:
+    """The held-out view pairs and their pixel matches (seeded by ``seed`` + 1 and + 2); a ConfigError naming
+    ``eval.split`` when none is found."""
+    eval_pairs_all = scene_pairs(eval_seqs, s, np.random.default_rng(s.seed + 1), None)
+    items = eval_items(eval_seqs, eval_pairs_all, s, np.random.default_rng(s.seed + 2))
+    if not items:
+        raise ConfigError("eval.split", s.eval_split, f"a split (or {HOLDOUT}) whose frames pair up (no held-out "
+                                                      f"view pairs found in {root})")
+    return items
+
+
+def _save(model: ResUNet, out: Path, data: Mapping[str, Any], h: str, root: Path, result: Mapping[str, Any]) -> None:
+    """The weights and what made them (config hash, profile, data, image size, the config, the result, the
+    git commit) to ``out``."""
+    from pcrcg.tracking.git import git_info
+    from pcrcg.tracking.hashing import flatten
+
+    meta = {"config_hash": h, "profile": _get(data, "profile.name"), "data_root": str(root),
+            "image_size": result["image_size"], "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "config": flatten({k: v for k, v in data.items() if k not in ("hydra",)}), "result": dict(result)}
+    meta["git_sha"] = git_info()[0]
+    save_pri3d_checkpoint(model, out, meta)
 
 
 def _train_and_evaluate(model: ResUNet, train_seqs, eval_seqs, pairs, items, s: Settings, device, show: bool,
