@@ -1,4 +1,4 @@
-"""`python -m pcrcg.evaluate mode=score|pair|benchmark ...` (config: conf/evaluate.yaml).
+"""`python -m pcrcg.evaluate mode=score|pair|benchmark|tracked ...` (config: conf/evaluate.yaml).
 
 * ``mode=score benchmark_dir=DIR estimate_dir=DIR``: score ``<estimate_dir>/<scene>/est.log``
   against ``<benchmark_dir>/<scene>/gt.log|gt.info`` (a missing estimate is a failure).
@@ -10,6 +10,15 @@
   ``<out_dir>/metrics.json``. ``method=learned checkpoint=FILE``: a trained model, evaluated as a
   run evaluates it (every N of ``registration.n_points``; color models read the fragments' views);
   writes ``<out_dir>/<benchmark>/<N>/<scene>/est.log`` and prints RR/FMR/IR per benchmark and N.
+* ``mode=tracked experiments=[main_results,window_size] data.root=DIR name=NAME``: every FINISHED run of
+  those MLflow experiments (store: ``logger.tracking_uri``, ``$MLFLOW_TRACKING_URI``, ``sqlite:///mlflow.db``)
+  that trained a model, evaluated on the test benchmarks of ``data.root`` with its own logged config
+  (every N, seed, RANSAC, every pair) and model (its checkpoint artifact, else the cache entry whose
+  ``source.json`` names it), logged into the same run: metrics ``NAME/<benchmark>/<key>``, artifacts
+  ``NAME/pairs/<benchmark>.csv`` and ``NAME/estimates/<benchmark>``, tag ``NAME.data_root``. A run that
+  already has ``NAME/`` metrics is skipped (``force=true`` redoes it), one whose checkpoint is gone is
+  reported and skipped; ``run_ids=[...]`` restricts it to some runs (:mod:`pcrcg.evaluation.tracked`).
+  The JSON lists ``evaluated``, ``skipped`` and ``failed`` runs (exit 1 when one failed).
 
 The last line of standard output is one JSON object. Every input is checked before work starts;
 a bad file is an error that names it.
@@ -36,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.errors import ConfigError, DataError, PcrcgError
 
-MODES = ("score", "pair", "benchmark")
+MODES = ("score", "pair", "benchmark", "tracked")
 
 
 def _need(cfg: DictConfig, key: str, what: str) -> str:
@@ -364,6 +373,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         return run_pair(cfg)
     if mode == "benchmark":
         return run_benchmark(cfg)
+    if mode == "tracked":
+        from pcrcg.evaluation.tracked import run_tracked
+
+        return run_tracked(cfg)
     raise ConfigError("mode", mode, " | ".join(MODES))
 
 
@@ -376,6 +389,8 @@ def main(cfg: DictConfig) -> None:
     from pcrcg.cli import strict_json
 
     print(strict_json(result))  # NaN as null: the last line is strict JSON
+    if result.get("failed"):  # mode=tracked: a run whose evaluation failed (the others were done)
+        sys.exit(1)
 
 
 if __name__ == "__main__":
