@@ -1,6 +1,6 @@
 """Match quality of the 2D matchers (sift, orb, lightglue) on real frames and on generated views.
 
-``python -m pcrcg.benchmarks.matching [--pairs 8] [--methods sift,orb,lightglue] [--real DIR]
+``python -m pcrcg.benchmarks.matching [--pairs 8] [--methods sift,orb,lightglue[:key=value...]] [--real DIR]
 [--root DIR] [--sizes 320x240,160x120] [--gap 40] [--threads 1] [--skip real,generated]
 [--pair-modes paper,covisible]``
 
@@ -96,11 +96,15 @@ def precision(residuals: Sequence[np.ndarray], px: float = PRECISION_PX) -> dict
 
 
 def matcher_config(method: str, image_size: Sequence[int] | None, profile: str = "cpu") -> Any:
-    """``conf/matcher2d/<method>.yaml`` (composed as a run composes it) with ``image_size`` set."""
+    """``conf/matcher2d/<method>.yaml`` (composed as a run composes it) with ``image_size`` set. ``method``
+    may carry settings of its group after colons, ``lightglue:filter_threshold=0.5:min_matches=20``
+    (``matcher2d.<key>=<value>`` each), to compare variants of one matcher in one table."""
     from pcrcg.config import load_run_config
     from pcrcg.vision.matching import MatcherConfig
 
-    cfg = load_run_config([f"matcher2d={method}", f"profile={profile}"], validate=False)
+    name, *settings = method.split(":")
+    overrides = [f"matcher2d.{kv.strip()}" for kv in settings if kv.strip()]
+    cfg = load_run_config([f"matcher2d={name}", f"profile={profile}", *overrides], validate=False)
     m = MatcherConfig.from_cfg(cfg.matcher2d)
     return replace(m, image_size=tuple(image_size) if image_size else None)
 
@@ -343,7 +347,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, list[dict]]:
 
     ap = argparse.ArgumentParser(prog="python -m pcrcg.benchmarks.matching", description=__doc__.split("\n")[0])
     ap.add_argument("--pairs", type=int, default=8, help="pairs per set (real frames; each generated benchmark)")
-    ap.add_argument("--methods", default="sift,orb,lightglue")
+    ap.add_argument("--methods", default="sift,orb,lightglue",
+                    help="matchers, each optionally with settings: lightglue:filter_threshold=0.5:ransac_threshold=1")
     ap.add_argument("--real", default=str(REAL_DEFAULT), help="a folder of real RGB-D frames (3DMatch layout)")
     ap.add_argument("--root", default=None, help="a generated data root (default: synthmatch-cpu, else -tiny)")
     ap.add_argument("--sizes", default="320x240,160x120", help="W x H the real frames are matched at")
