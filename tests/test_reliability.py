@@ -548,6 +548,8 @@ def _entry(module: str, args: list[str], cwd: Path, monkeypatch, capsys) -> tupl
     ("pcrcg.report", ["paper_csv=nowhere.csv"], "nowhere.csv: the paper's numbers file (paper_csv) does not exist"),
     ("pcrcg.report", ["data.root=nowhere"], "data.root"),
     ("pcrcg.report", ["profile=nope"], "profile/nope"),
+    ("pcrcg.report", ["stats.n_boot=abc"], "stats.n_boot='abc'"),
+    ("pcrcg.report", ["stats.level=high"], "stats.level='high'"),
     ("pcrcg.pretrain2d", ["profile=tiny", "train.lr=abc"], "train.lr"),
 ])
 def test_bad_values_are_one_line_and_exit_2(tmp_path, monkeypatch, capsys, module, args, text):

@@ -86,6 +86,7 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     base = Path(base_dir) if base_dir is not None else Path.cwd()
     specs = parse_specs(c["specs"])
     names = _select(specs, c.get("tables", "all"))
+    settings = StatsSettings.from_dict(c.get("stats"))  # a bad setting stops the report before it reads or writes
     out_dir = Path(str(c.get("out_dir") or "reports"))
     out_dir = out_dir if out_dir.is_absolute() else base / out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -101,7 +102,6 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     wanted = _profile_name(c.get("profile"))
     profiles = {e: wanted or newest_profile(all_runs, e) for e in sorted(set(experiments) | set(found))}
 
-    settings = StatsSettings.from_dict(c.get("stats"))
     identity = c.get("identity", DEFAULT_IDENTITY)
     if identity not in IDENTITIES:
         raise ConfigError("identity", identity, " | ".join(IDENTITIES))

@@ -48,18 +48,30 @@ class StatsSettings:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "StatsSettings":
         d = dict(d or {})
-        at = tuple(MEAN if str(a) == MEAN else int(a) for a in (d.get("at") or cls.at))
+        at = tuple(MEAN if str(a) == MEAN else _number(int, "stats.at", a, f"sample sizes or {MEAN!r}")
+                   for a in (d.get("at") or cls.at))
         metrics = tuple(str(m) for m in (d.get("metrics") or cls.metrics))
         bad = [m for m in metrics if m not in TESTED_METRICS]
         if bad:
             raise ConfigError("stats.metrics", bad, " | ".join(TESTED_METRICS))
-        level = float(d.get("level", cls.level))
+        level = _number(float, "stats.level", d.get("level", cls.level), "a number in (0, 1), e.g. 0.95")
         if not 0 < level < 1:
             raise ConfigError("stats.level", level, "a number in (0, 1), e.g. 0.95")
-        n_boot = int(d.get("n_boot", cls.n_boot))
+        n_boot = _number(int, "stats.n_boot", d.get("n_boot", cls.n_boot), "a positive number of resamples, e.g. 2000")
         if n_boot < 1:
             raise ConfigError("stats.n_boot", n_boot, "a positive number of resamples, e.g. 2000")
-        return cls(n_boot, int(d.get("seed", cls.seed)), level, at, metrics)
+        seed = _number(int, "stats.seed", d.get("seed", cls.seed), "an integer")
+        return cls(n_boot, seed, level, at, metrics)
+
+
+def _number(kind: type, setting: str, value: Any, allowed: str) -> Any:
+    """``kind(value)`` (int or float; not a bool), or a ConfigError naming ``setting``."""
+    try:
+        if isinstance(value, bool):
+            raise ValueError(value)
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ConfigError(setting, value, allowed) from None
 
 
 @dataclass
