@@ -123,6 +123,9 @@ def test_every_pair_of_the_other_root_lands_in_the_same_run(in_store, tmp_path):
     assert est and all(p.startswith(f"{NAME}/estimates/3DMatch/250/") for p in est)
     manifest = json.loads((other / "manifest.json").read_text())
     assert run.data.tags[f"{NAME}.data_root"] == f"{other.resolve()} params_hash={manifest['params_hash']}"
+    from pcrcg.tracking.git import code_version
+
+    assert run.data.tags[f"{NAME}.code_version"] == code_version()
     # the run's own results are untouched
     assert _same(run.data.metrics["3DMatch/rr_250"], in_store["run"].data.metrics["3DMatch/rr_250"])
     assert run.data.metrics["3DMatch/n_evaluated"] == 1

@@ -12,7 +12,8 @@ config (registration and protocol settings, every N, seed) with ``data.root`` re
 * artifacts ``<name>/pairs/<benchmark>.csv`` (:mod:`pcrcg.evaluation.pairs`),
   ``<name>/estimates/<benchmark>/<N>/<scene>/est.log`` and ``<name>/evaluation/metrics.json``;
 * tags ``<name>.data_root`` (``<root> params_hash=<manifest's hash>``), ``<name>.checkpoint`` (the file
-  evaluated and where it was found).
+  evaluated and where it was found), ``<name>.code_version`` (the code that evaluated it, which may be
+  newer than the run's ``code_version``).
 
 The run's model is found, in order (:func:`find_checkpoint`): (1) its checkpoint artifact
 ``checkpoint/model.ckpt`` (the copy the store keeps: immutable, survives a cleaned cache); (2) a run
@@ -390,6 +391,7 @@ def evaluate_candidate(tracker: Any, cand: Candidate, *, name: str, root: Path, 
     (artifacts and tags first, metrics last). Returns the prefixed metrics."""
     from pcrcg.evaluation.run import evaluate
     from pcrcg.pipeline import resolve_device
+    from pcrcg.tracking.git import code_version
 
     cfg = rebuilt_config(cand.config, root)
     device = resolve_device((cand.config.get("runtime") or {}).get("device"))
@@ -399,7 +401,8 @@ def evaluate_candidate(tracker: Any, cand: Candidate, *, name: str, root: Path, 
         for path, folder in result["artifacts"]:
             tracker.log_artifact(cand.run_id, path, f"{name}/{folder}" if folder else name)
     tracker.set_tags(cand.run_id, {f"{name}.data_root": f"{root.resolve()} params_hash={params_hash}",
-                                   f"{name}.checkpoint": f"{cand.checkpoint} ({cand.checkpoint_from})"})
+                                   f"{name}.checkpoint": f"{cand.checkpoint} ({cand.checkpoint_from})",
+                                   f"{name}.code_version": code_version()})
     metrics = prefixed(result["metrics"], name)
     tracker.log_metrics(cand.run_id, metrics)
     return metrics
