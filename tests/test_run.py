@@ -240,7 +240,8 @@ def test_method_label():
 
 def test_cli_argument_parsing(tmp_path):
     from pcrcg.config import CONF_DIR
-    from pcrcg.run import cli_overrides, cli_search_dirs
+    from pcrcg.cli import command_line_config_dirs as cli_search_dirs
+    from pcrcg.cli import command_line_overrides as cli_overrides
 
     argv = ["--config-path", str(tmp_path), "-cn", "run", "+experiment=views", "views=1,2", "-m", "--multirun"]
     assert cli_overrides(argv) == ["+experiment=views", "views=1,2"]
