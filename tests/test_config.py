@@ -8,6 +8,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from pcrcg.config import (
+    CONF_DIR,
     check_overrides,
     check_sweep_params,
     group_options,
@@ -210,3 +211,20 @@ def test_cli_rejects_bad_values_before_any_work(conf, tmp_path, monkeypatch, cap
         assert f"invalid config value {word}=" in err and "allowed" in err
     assert not (tmp_path / "mlflow.db").exists()
     assert not (tmp_path / "outputs").exists() and not (tmp_path / "multirun").exists()
+
+
+@pytest.mark.parametrize("group", ["projection", "encoder2d"])
+def test_the_options_of_a_group_extend_its_common_base_instead_of_copying_it(group):
+    """Each option file of the group pulls ``common/base.yaml`` and writes only what differs: a key copied
+    from the base with the same value would drift from it again. Every option composes with every base key."""
+    import yaml
+
+    folder = CONF_DIR / group
+    base = yaml.safe_load((folder / "common" / "base.yaml").read_text())
+    for path in sorted(folder.glob("*.yaml")):
+        own = yaml.safe_load(path.read_text())
+        assert own.get("defaults") == ["common/base@_here_", "_self_"], path.name
+        copied = {k for k, v in own.items() if k in base and v == base[k] and k != "weights"}
+        assert not copied, f"{path.name} repeats {sorted(copied)} of common/base.yaml"
+        composed = load_run_config([f"{group}={path.stem}", "profile=tiny"], validate=False)[group]
+        assert set(base) <= set(composed) and composed.get("name", composed.get("method")) == path.stem
