@@ -228,3 +228,18 @@ def test_the_options_of_a_group_extend_its_common_base_instead_of_copying_it(gro
         assert not copied, f"{path.name} repeats {sorted(copied)} of common/base.yaml"
         composed = load_run_config([f"{group}={path.stem}", "profile=tiny"], validate=False)[group]
         assert set(base) <= set(composed) and composed.get("name", composed.get("method")) == path.stem
+
+
+def test_the_data_code_version_is_written_once_for_every_data_option():
+    """``data.version`` lives in conf/data/common/version.yaml (beside GENERATOR_VERSION, which it must equal);
+    every data option extends that file instead of writing its own number."""
+    import yaml
+
+    from pcrcg.data.materialise import GENERATOR_VERSION
+
+    folder = CONF_DIR / "data"
+    assert yaml.safe_load((folder / "common" / "version.yaml").read_text()) == {"version": GENERATOR_VERSION}
+    for path in sorted(folder.glob("*.yaml")):
+        own = yaml.safe_load(path.read_text())
+        assert "version" not in own, f"{path.name} writes data.version itself"
+        assert load_run_config([f"data={path.stem}", "profile=tiny"], validate=False).data.version == GENERATOR_VERSION
