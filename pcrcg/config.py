@@ -456,6 +456,12 @@ def color_enabled(data: Mapping[str, Any]) -> bool:
     return feats not in (None, "none") and proj not in (None, "none")
 
 
+def needs_training(cfg: DictConfig | Mapping[str, Any]) -> bool:
+    """Whether a run trains a model: a learned method, or ICP started from a learned model's estimate."""
+    method = cfg.get("method", "learned")
+    return method == "learned" or (method in CLASSICAL_METHODS and cfg.get("icp_init") == "learned")
+
+
 def _fraction(setting: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
         raise ConfigError(setting, value, "a number in (0, 1]")

@@ -36,14 +36,14 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.config import CLASSICAL_METHODS, CONF_DIR, color_enabled, preflight, validate_run_config
+from pcrcg.config import CONF_DIR, color_enabled, needs_training, preflight, validate_run_config
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
-from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flatten, run_hash, to_plain
+from pcrcg.tracking.hashing import COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain, without
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.runs import RunTracker
@@ -282,6 +282,17 @@ def train_model(ctx: RunContext) -> TrainOutput:
     return out
 
 
+def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
+    """A run's identity: :func:`config_hash` of its config (``exclude``: ``HASH_EXCLUDE`` for the run,
+    ``TRAIN_HASH_EXCLUDE`` for its training), without the ``COLOR_ONLY`` settings when it trains or
+    evaluates a geometry-only learned model (``method`` learned or left out; a classical method such as
+    ``sift_dlt`` reads ``matcher2d``, so its runs keep them)."""
+    data = to_plain(cfg)
+    if data.get("method", "learned") == "learned" and not color_enabled(data):
+        data = without(data, COLOR_ONLY)
+    return config_hash(data, exclude)
+
+
 def train_key(cfg: DictConfig) -> str:
     """The checkpoint cache's key: the hash of the training config (evaluation-only settings left out) and,
     under ``logger.identity=config_and_code``, the code version (a model of other code is another model)."""
@@ -335,10 +346,6 @@ def evaluate_method(ctx: RunContext) -> EvalOutput:
 def identity(cfg: DictConfig) -> str:
     """``logger.identity``: whether a run of other code counts as the same run (``config``) or not."""
     return str(OmegaConf.select(cfg, "logger.identity", default=DEFAULT_IDENTITY))
-
-
-def needs_training(cfg: DictConfig) -> bool:
-    return cfg.method == "learned" or (cfg.method in CLASSICAL_METHODS and cfg.icp_init == "learned")
 
 
 def _make_2d_weights(cfg: DictConfig, job: JobInfo, data: Mapping[str, Any]) -> None:

@@ -12,7 +12,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from pcrcg.tracking.git import git_info
-from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, flatten, run_hash
+from pcrcg.pipeline import run_hash
+from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE, config_hash, flat_params, flatten
 from pcrcg.tracking.store import artifact_root, resolve_tracking_uri, sqlite_path, ui_command
 
 

@@ -47,7 +47,7 @@ def run_splits(cfg: Any) -> tuple[list[str], list[str]]:
     """(pairs splits, benchmarks) a run reads: ``train``/``val`` when it trains, ``eval.benchmarks``."""
     from omegaconf import OmegaConf
 
-    from pcrcg.pipeline import needs_training
+    from pcrcg.config import needs_training
 
     splits = ["train", "val"] if needs_training(cfg) else []
     benches = [str(b) for b in (OmegaConf.select(cfg, "eval.benchmarks") or BENCHMARKS)]

@@ -27,9 +27,8 @@ HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", 
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 # settings that only a color run reads (the 2D encoder, the matcher, the projection and what it lifts): a learned
-# geometry-only run (features or projection none, :func:`pcrcg.config.color_enabled`) leaves them out of its
-# identity, so one geometry-only model (and run) per seed serves every table, whatever encoder2d, matcher2d,
-# window or views the table sets for its color rows
+# geometry-only run leaves them out of its identity (pcrcg.pipeline.run_hash), so one geometry-only model (and
+# run) per seed serves every table, whatever encoder2d, matcher2d, window or views the table sets for its color rows
 COLOR_ONLY: tuple[str, ...] = ("encoder2d", "matcher2d", "projection", "features", "views", "window_size",
                                "profile.encoder2d", "profile.lifting")
 
@@ -93,17 +92,9 @@ def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HA
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
-    """:func:`config_hash` of a run's config (``exclude``: :data:`HASH_EXCLUDE` for the run,
-    :data:`TRAIN_HASH_EXCLUDE` for its training), without the :data:`COLOR_ONLY` settings when the run
-    trains or evaluates a geometry-only learned model (``method`` learned or left out; a classical
-    method such as ``sift_dlt`` reads ``matcher2d``, so its runs keep them)."""
-    from pcrcg.config import color_enabled
-
-    data = to_plain(cfg)
-    if data.get("method", "learned") == "learned" and not color_enabled(data):
-        data = _drop(data, COLOR_ONLY)
-    return config_hash(data, exclude)
+def without(data: Mapping[str, Any], keys: Iterable[str]) -> dict[str, Any]:
+    """A copy of the plain config ``data`` without the dotted ``keys`` (e.g. :data:`COLOR_ONLY`)."""
+    return _drop(dict(data), keys)
 
 
 def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
