@@ -6,6 +6,7 @@ import logging
 import os
 import time
 from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -79,6 +80,78 @@ def own_estimates(out: Any, T_gt: np.ndarray, cfg: RegistrationConfig, seed: np.
     return res
 
 
+@dataclass
+class _Estimates:
+    """What the pairs gave, per key (an N of the protocol, or a model's own estimate): transforms
+    ``est[key][scene][(i, j)]`` (4, 4), inlier ratios per scene in pair order and per pair, seconds."""
+
+    keys: list[Any]
+    est: dict[Any, dict[str, dict[tuple[int, int], np.ndarray]]] = field(default_factory=dict)
+    irs: dict[Any, dict[str, list[float]]] = field(default_factory=dict)
+    pair_irs: dict[Any, dict[str, dict[tuple[int, int], float]]] = field(default_factory=dict)
+    seconds: dict[Any, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for key in self.keys:
+            self._open(key)
+
+    def _open(self, key: Any) -> None:
+        self.est[key], self.irs[key], self.pair_irs[key] = defaultdict(dict), defaultdict(list), defaultdict(dict)
+        self.seconds[key] = 0.0
+
+    def record(self, key: Any, scene: str, ij: tuple[int, int], T: np.ndarray, ir: float) -> None:
+        """One pair's estimate T (4, 4) and inlier ratio under ``key`` (a new key is added after the others)."""
+        if key not in self.est:
+            self.keys.append(key)
+            self._open(key)
+        self.est[key][scene][ij] = T
+        self.irs[key][scene].append(ir)
+        self.pair_irs[key][scene][ij] = ir
+
+
+def _register_at(out: Any, src: FragmentOutput, tgt: FragmentOutput, n: int, T_gt: np.ndarray,
+                 cfg: RegistrationConfig, seed: np.random.SeedSequence, inlier_distance: float) -> tuple[np.ndarray, float]:
+    """One pair at one N: the transform (4, 4) and the inlier ratio of the correspondences it used. A model
+    that gives its own correspondences (CoFiNet: ``out.correspondences`` (C, 6)) is registered by RANSAC on N
+    of them; otherwise Predator's sampling, matching and RANSAC on the per-point outputs."""
+    corr = getattr(out, "correspondences", None)
+    if corr is not None:
+        pts = np.asarray(corr, np.float32).reshape(-1, 6)
+        creg = register_correspondences(pts, out.correspondence_scores, n, cfg, seed=seed)
+        u = pts[creg.used]
+        return creg.transform, (inlier_ratio(u[:, :3], u[:, 3:], T_gt, inlier_distance) if len(u) else 0.0)
+    reg = register_features(src, tgt, n, cfg, seed=seed)
+    c = reg.correspondences
+    return reg.transform, (inlier_ratio(src.points[c[:, 0]], tgt.points[c[:, 1]], T_gt, inlier_distance) if len(c) else 0.0)
+
+
+def _score(gt: Mapping[str, SceneGT], scored: Mapping[str, SceneGT], acc: _Estimates, n_done: int,
+           est_dir: str | os.PathLike | None, predator_variant: bool, fmr_threshold: float,
+           rmse_threshold: float) -> tuple[dict[str, float], Any]:
+    """Per key: RR, FMR, IR, RRE, RTE and seconds per pair over the ``scored`` pairs (and est.log / inlier
+    ratio files under ``est_dir/<key>/<scene>/`` for every pair of ``gt``); returns them and the last score."""
+    metrics: dict[str, float] = {}
+    score = None
+    for n in acc.keys:
+        score = score_benchmark(scored, acc.est[n], predator_variant, threshold=rmse_threshold)
+        cm = correspondence_metrics({s: acc.irs[n].get(s, []) for s in scored}, fmr_threshold)
+        metrics.update({
+            f"rr_{n}": score.rr,
+            f"rr_pair_{n}": score.rr_pair,
+            f"fmr_{n}": cm["fmr"],
+            f"fmr_pair_{n}": cm["fmr_pair"],
+            f"ir_{n}": cm["ir"],
+            f"rre_{n}": score.rre,
+            f"rte_{n}": score.rte,
+            f"seconds_per_pair_{n}": acc.seconds[n] / max(n_done, 1),
+        })
+        if est_dir is not None:
+            for s, g in gt.items():
+                write_estimates(Path(est_dir) / str(n) / s / "est.log", g, acc.est[n].get(s, {}))
+                write_inlier_ratios(Path(est_dir) / str(n) / s / INLIER_RATIO_FILE, g, acc.pair_irs[n].get(s, {}))
+    return metrics, score
+
+
 def evaluate_model_outputs(
     outputs: Iterable[Any],
     benchmark: str | os.PathLike | Mapping[str, SceneGT],
@@ -98,11 +171,7 @@ def evaluate_model_outputs(
     gt = benchmark if isinstance(benchmark, Mapping) else load_benchmark(benchmark)
     lookup = {(s, p.i, p.j): (g, k) for s, g in gt.items() for k, p in enumerate(g.pairs)}
     ns = list(cfg.n_points)
-    est: dict[int, dict[str, dict[tuple[int, int], np.ndarray]]] = {n: defaultdict(dict) for n in ns}
-    irs: dict[int, dict[str, list[float]]] = {n: defaultdict(list) for n in ns}
-    pair_irs: dict[int, dict[str, dict[tuple[int, int], float]]] = {n: defaultdict(dict) for n in ns}
-    seconds = {n: 0.0 for n in ns}
-    own: list[str] = []  # keys of the model's own estimates (OWN_ESTIMATES), when it gives them
+    acc = _Estimates(list(ns))  # the model's own estimates (OWN_ESTIMATES), when it gives them, are added after
     seen: dict[str, set[tuple[int, int]]] = defaultdict(set)
     coverage: list[float] = []
     n_done = 0
@@ -119,60 +188,21 @@ def evaluate_model_outputs(
         cov = getattr(out, "color_coverage", float("nan"))
         if cov is not None and np.isfinite(cov):
             coverage.append(float(cov))
-        corr = getattr(out, "correspondences", None)  # a model's own correspondences (CoFiNet): N of them, RANSAC
         for n in ns:
             t0 = time.perf_counter()
-            if corr is not None:
-                pts = np.asarray(corr, np.float32).reshape(-1, 6)
-                creg = register_correspondences(pts, out.correspondence_scores, n, cfg,
-                                                seed=pair_seed(seed, scene, i, j, n))
-                seconds[n] += time.perf_counter() - t0
-                est[n][scene][(i, j)] = creg.transform
-                u = pts[creg.used]
-                irs[n][scene].append(inlier_ratio(u[:, :3], u[:, 3:], T_gt, inlier_distance) if len(u) else 0.0)
-                pair_irs[n][scene][(i, j)] = irs[n][scene][-1]
-                continue
-            reg = register_features(src, tgt, n, cfg, seed=pair_seed(seed, scene, i, j, n))
-            seconds[n] += time.perf_counter() - t0
-            est[n][scene][(i, j)] = reg.transform
-            c = reg.correspondences
-            irs[n][scene].append(
-                inlier_ratio(src.points[c[:, 0]], tgt.points[c[:, 1]], T_gt, inlier_distance) if len(c) else 0.0
-            )
-            pair_irs[n][scene][(i, j)] = irs[n][scene][-1]
+            T, ir = _register_at(out, src, tgt, n, T_gt, cfg, pair_seed(seed, scene, i, j, n), inlier_distance)
+            acc.seconds[n] += time.perf_counter() - t0
+            acc.record(n, scene, (i, j), T, ir)
         t0 = time.perf_counter()
         mine = own_estimates(out, T_gt, cfg, pair_seed(seed, scene, i, j, 0), inlier_distance)
         for key, (T_own, ir) in mine.items():
-            if key not in est:
-                own.append(key)
-                est[key], irs[key], pair_irs[key] = defaultdict(dict), defaultdict(list), defaultdict(dict)  # type: ignore[index]
-                seconds[key] = 0.0  # type: ignore[index]
-            est[key][scene][(i, j)] = T_own  # type: ignore[index]
-            irs[key][scene].append(ir)  # type: ignore[index]
-            pair_irs[key][scene][(i, j)] = ir  # type: ignore[index]
+            acc.record(key, scene, (i, j), T_own, ir)
         if "lgr_ransac" in mine:  # LGR itself runs in the network's inference
-            seconds["lgr_ransac"] += time.perf_counter() - t0  # type: ignore[index]
+            acc.seconds["lgr_ransac"] += time.perf_counter() - t0
         n_done += 1
 
     scored = subset(gt, seen) if only_evaluated else dict(gt)
-    metrics: dict[str, float] = {}
-    for n in [*ns, *own]:
-        score = score_benchmark(scored, est[n], predator_variant, threshold=rmse_threshold)
-        cm = correspondence_metrics({s: irs[n].get(s, []) for s in scored}, fmr_threshold)
-        metrics.update({
-            f"rr_{n}": score.rr,
-            f"rr_pair_{n}": score.rr_pair,
-            f"fmr_{n}": cm["fmr"],
-            f"fmr_pair_{n}": cm["fmr_pair"],
-            f"ir_{n}": cm["ir"],
-            f"rre_{n}": score.rre,
-            f"rte_{n}": score.rte,
-            f"seconds_per_pair_{n}": seconds[n] / max(n_done, 1),
-        })
-        if est_dir is not None:
-            for s, g in gt.items():
-                write_estimates(Path(est_dir) / str(n) / s / "est.log", g, est[n].get(s, {}))
-                write_inlier_ratios(Path(est_dir) / str(n) / s / INLIER_RATIO_FILE, g, pair_irs[n].get(s, {}))
+    metrics, score = _score(gt, scored, acc, n_done, est_dir, predator_variant, fmr_threshold, rmse_threshold)
     top = max(ns)
     metrics["rre"] = metrics[f"rre_{top}"]
     metrics["rte"] = metrics[f"rte_{top}"]
