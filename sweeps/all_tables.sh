@@ -16,7 +16,8 @@ set -u
 PYTHON=${PYTHON:-python}
 PROFILE=${1:-cpu}
 shift || true
-EXPERIMENTS=${EXPERIMENTS:-"main_results ransac_budget window_size views views_explicit backbone_2d projection icp_init sift_dlt"}
+# the tables in their order (pcrcg.experiments.TABLE_ORDER)
+EXPERIMENTS=${EXPERIMENTS:-$("$PYTHON" -m pcrcg.experiments --experiments | tr '\n' ' ')}
 
 status=0
 for exp in $EXPERIMENTS; do

@@ -30,28 +30,8 @@ if [ "${#JOBS[@]}" -eq 0 ]; then
   exit 2
 fi
 COMMON="profile=$PROFILE runtime.report_on_end=false${SEEDS:+ seed=$SEEDS}"
-[ "$DRY_RUN" = 1 ] || mkdir -p "$LOGS"
 
-lane() {  # lane <number>: every other job of the list, starting at job <number> (1 or 2)
-  local k=$(( $1 - 1 )) L=$LOGS/lane$1.log line
-  while [ "$k" -lt "${#JOBS[@]}" ]; do
-    line=${JOBS[$k]}
-    # shellcheck disable=SC2086  # "<experiment> [overrides...]"
-    job "$L" $line
-    k=$(( k + 2 ))
-  done
-}
-
-if [ "$DRY_RUN" = 1 ]; then
-  echo "# lane 1"; lane 1
-  echo "# lane 2"; lane 2
-else
-  # a brand-new SQLite store is created once, before the lanes write to it at once
-  "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
-  lane 1 & p1=$!
-  lane 2 & p2=$!
-  wait $p1 $p2
-fi
+two_lanes
 
 # the real scene: built once from ../shared/data (when it is here), then every run of the findings' experiments on it
 L=$LOGS/real.log

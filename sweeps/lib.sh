@@ -46,3 +46,26 @@ run() {  # run <command...>: in the foreground (output to the terminal), or prin
   fi
   "$@"
 }
+
+lane() {  # lane <1|2>: every other job of the array JOBS ("<experiment> [overrides...]" each), from job 1 or 2,
+  local k=$(( $1 - 1 )) L=$LOGS/lane$1.log   # logged to $LOGS/lane<n>.log
+  while [ "$k" -lt "${#JOBS[@]}" ]; do
+    # shellcheck disable=SC2086  # "<experiment> [overrides...]"
+    job "$L" ${JOBS[$k]}
+    k=$(( k + 2 ))
+  done
+}
+
+two_lanes() {  # the jobs of JOBS as two single-core lanes at once (printed one lane after the other with DRY_RUN=1)
+  if [ "$DRY_RUN" = 1 ]; then
+    echo "# lane 1"; lane 1
+    echo "# lane 2"; lane 2
+    return 0
+  fi
+  mkdir -p "$LOGS"
+  # a brand-new SQLite store is created once, before the lanes write to it at once
+  "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
+  lane 1 & local p1=$!
+  lane 2 & local p2=$!
+  wait "$p1" "$p2"
+}

@@ -1,0 +1,66 @@
+"""The tables' sweeps read from the experiment files (pcrcg.experiments) and the sweep scripts built on them."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pcrcg.errors import ConfigError
+from pcrcg.experiments import TABLE_ORDER, experiment_jobs, main, sweep_axes
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _experiment(tmp_path: Path, name: str, params: str) -> Path:
+    (tmp_path / "experiment").mkdir(exist_ok=True)
+    (tmp_path / "experiment" / f"{name}.yaml").write_text(
+        f"# @package _global_\nexperiment_name: {name}\nhydra:\n  sweeper:\n    params:\n{params}")
+    return tmp_path
+
+
+def test_the_jobs_are_the_product_of_the_axes_in_their_order(tmp_path):
+    conf = _experiment(tmp_path, "grid", "      features: rgb,deep\n      window_size: 3,7,11\n"
+                                         "      profile.lifting.image_size: '[60,80]'\n")
+    assert sweep_axes("grid", conf) == {"features": ["rgb", "deep"], "window_size": ["3", "7", "11"],
+                                        "profile.lifting.image_size": ["[60,80]"]}
+    jobs = experiment_jobs("grid", conf)
+    assert len(jobs) == 6 and jobs[0] == ["features=rgb", "window_size=3", "profile.lifting.image_size=[60,80]"]
+    assert jobs[-1][:2] == ["features=deep", "window_size=11"]
+    assert experiment_jobs("single", _experiment(tmp_path, "single", "      {}\n")) == [[]]
+
+
+def test_the_real_tables_sweeps(capsys):
+    assert experiment_jobs("window_size") == [[f"window_size={w}"] for w in (3, 7, 11, 17)]
+    assert sorted(experiment_jobs("main_results")) == [["features=deep"], ["features=none"]]
+    assert main(["--jobs", "views"]) == 0
+    assert capsys.readouterr().out.splitlines() == ["views views=1", "views views=2", "views views=3"]
+    assert main(["--experiments"]) == 0
+    assert tuple(capsys.readouterr().out.split()) == TABLE_ORDER
+    for name in TABLE_ORDER:  # every table of the order has its experiment file
+        assert experiment_jobs(name)
+
+
+def test_an_unknown_experiment_is_a_config_error_naming_it():
+    with pytest.raises(ConfigError, match="experiment='nope'.*window_size"):
+        sweep_axes("nope")
+
+
+def test_the_two_lanes_script_deals_every_job_once():
+    env = {**os.environ, "DRY_RUN": "1", "PYTHON": sys.executable, "SEEDS": "0,1"}
+    out = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "window_size", "views"], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    runs = [ln for ln in out.stdout.splitlines() if " -m pcrcg.run " in ln]
+    assert len(runs) == 7 and all(ln.endswith(" -m") and "profile=cpu" in ln and "seed=0,1" in ln for ln in runs)
+    jobs = sorted(ln.split("runtime.report_on_end=false seed=0,1 ")[1][:-3] for ln in runs)
+    assert jobs == sorted([f"window_size={w}" for w in (3, 7, 11, 17)] + [f"views={v}" for v in (1, 2, 3)])
+    lines = out.stdout.splitlines()
+    assert lines.index("# lane 2") == 5  # four jobs on lane 1 (1st, 3rd, ...), three on lane 2
+    assert lines[-1].endswith("-m pcrcg.report profile=cpu")
+    bad = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "nope"], cwd=REPO, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "nope" in bad.stderr
