@@ -456,6 +456,11 @@ def color_enabled(data: Mapping[str, Any]) -> bool:
     return feats not in (None, "none") and proj not in (None, "none")
 
 
+def geometry_only(data: Mapping[str, Any]) -> bool:
+    """Whether a run is a learned model without color (it never reads the 2D groups' settings or files)."""
+    return data.get("method", "learned") == "learned" and not color_enabled(data)
+
+
 def needs_training(cfg: DictConfig | Mapping[str, Any]) -> bool:
     """Whether a run trains a model: a learned method, or ICP started from a learned model's estimate."""
     method = cfg.get("method", "learned")
@@ -607,7 +612,7 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
     # files of groups the run never reads are not its business: a geometry-only row of a table whose color rows
     # use Pri3D weights runs before (or without) them
     unused = set() if uses_encoder else {"encoder2d"}
-    if method == "learned" and not (needs_2d and color_enabled(data)):
+    if geometry_only(data):
         unused |= {"features", "matcher2d"}
     for path, value in _weight_paths(data):
         if path.split(".")[0] in unused:

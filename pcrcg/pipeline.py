@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.config import CONF_DIR, color_enabled, needs_training, preflight, validate_run_config
+from pcrcg.config import CONF_DIR, color_enabled, geometry_only, needs_training, preflight, validate_run_config
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain, without
@@ -288,9 +288,7 @@ def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_
     evaluates a geometry-only learned model (``method`` learned or left out; a classical method such as
     ``sift_dlt`` reads ``matcher2d``, so its runs keep them)."""
     data = to_plain(cfg)
-    if data.get("method", "learned") == "learned" and not color_enabled(data):
-        data = without(data, COLOR_ONLY)
-    return config_hash(data, exclude)
+    return config_hash(without(data, COLOR_ONLY) if geometry_only(data) else data, exclude)
 
 
 def train_key(cfg: DictConfig) -> str:

@@ -44,8 +44,8 @@ def to_plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     return data
 
 
-def _drop(data: dict[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
-    """Remove dotted keys (``a.b``) from a nested dict (a copy)."""
+def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
+    """A copy of the nested plain config ``data`` without the dotted keys (``a.b``) of ``exclude``."""
     out = json.loads(json.dumps(data, default=str))
     for key in exclude:
         *parents, last = key.split(".")
@@ -87,14 +87,9 @@ def _with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
 
 def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
     """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``."""
-    data = _with_weights_digest(_drop(to_plain(cfg), exclude))
+    data = _with_weights_digest(without(to_plain(cfg), exclude))
     blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def without(data: Mapping[str, Any], keys: Iterable[str]) -> dict[str, Any]:
-    """A copy of the plain config ``data`` without the dotted ``keys`` (e.g. :data:`COLOR_ONLY`)."""
-    return _drop(dict(data), keys)
 
 
 def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
