@@ -6,8 +6,9 @@ Public API
 * :func:`dense_sift_map` ``(color, dim, step=4, size=8.0, seed=0) -> (dim, H, W) float32 tensor``:
   OpenCV SIFT descriptors computed on a dense keypoint grid (one keypoint every ``step`` pixels,
   centred in its cell), RootSIFT-normalised, reduced from 128 to ``dim`` by a fixed seeded random
-  orthonormal projection (:func:`sift_projection`), L2-normalised, then bilinearly upsampled to
-  every pixel (pixel-centre aligned). Deterministic: same image, same map.
+  orthonormal projection (:func:`sift_projection`, at home in :mod:`pcrcg.vision.keypoints`),
+  L2-normalised, then bilinearly upsampled to every pixel (pixel-centre aligned). Deterministic: same
+  image, same map.
 * ``disk``: DISK's dense 128-d descriptor map (the learned matcher's own network, pretrained by its
   authors; :func:`pcrcg.vision.learned.dense_disk_maps`), reduced to ``dim`` by the same fixed
   projection as dense SIFT, computed at ``image_size`` (the projection grid by default), frozen.
@@ -32,6 +33,11 @@ import torch
 from torch import nn
 
 from pcrcg.errors import ConfigError
+from pcrcg.vision.encoders import build_encoder
+from pcrcg.vision.keypoints import sift_projection
+from pcrcg.vision import learned  # called as learned.dense_disk_maps: a test may replace it there
+
+# cv2 is imported where it is used (dense SIFT, resizing), as in the other pcrcg.vision modules.
 
 KINDS = ("none", "rgb", "sift", "deep", "disk")
 CONSTANT_KINDS = ("rgb", "sift", "disk")  # maps that do not train: memoised per view
@@ -41,16 +47,6 @@ def rgb_map(color: np.ndarray, device: torch.device | str | None = None) -> torc
     """RGB uint8 (H, W, 3) -> (3, H, W) float32 in [0, 1]."""
     t = torch.from_numpy(np.ascontiguousarray(color)).to(device=device)
     return t.permute(2, 0, 1).float().div_(255.0)
-
-
-def sift_projection(dim: int, seed: int = 0, kind: str = "sift") -> np.ndarray:
-    """A fixed (seeded) 128 -> dim projection with orthonormal rows: (dim, 128) float32 (dense SIFT's
-    and DISK's reduction; ``kind`` names the features in the error)."""
-    if not 1 <= dim <= 128:
-        raise ConfigError("features.dim", dim, f"1..128 for features={kind}")
-    rng = np.random.default_rng(seed)
-    q, _ = np.linalg.qr(rng.normal(size=(128, dim)))
-    return q.T.astype(np.float32)
 
 
 def dense_sift_map(color: np.ndarray, dim: int = 32, step: int = 4, size: float = 8.0, seed: int = 0) -> torch.Tensor:
@@ -141,10 +137,8 @@ class FeatureExtractor(nn.Module):
             out.append(hit)
         miss = [i for i, m in enumerate(out) if m is None]
         if miss and self.kind == "disk":
-            from pcrcg.vision.learned import dense_disk_maps
-
             dev = device if device is not None and torch.device(device).type == "cuda" else None
-            maps = dense_disk_maps([views[i].color for i in miss], self.dim, self.image_size, self.weights,
+            maps = learned.dense_disk_maps([views[i].color for i in miss], self.dim, self.image_size, self.weights,
                                    self.seed, dev)
             for i, m in zip(miss, maps):
                 out[i] = m
@@ -193,8 +187,6 @@ def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> Featu
     encoder = None
     image_size = _get(features_cfg, "image_size", None) if kind == "disk" else None
     if kind == "deep":
-        from pcrcg.vision.encoders import build_encoder
-
         encoder = build_encoder(encoder_cfg, out_dim=dim)
         image_size = _get(encoder_cfg, "image_size", None)
     return FeatureExtractor(kind, dim, encoder, image_size, int(_get(features_cfg, "step", 4)),

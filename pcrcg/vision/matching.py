@@ -12,6 +12,8 @@ Public API (other stages code against it)
   ``ratio``/``mutual``/``contrast_threshold`` are SIFT/ORB settings; ``nms_window``,
   ``filter_threshold``, ``*_weights`` LightGlue's (:mod:`pcrcg.vision.learned`); ``device``
   (``auto``: CUDA when torch has it) says where the learned networks run and is not part of any key.
+* :class:`Matches`, :class:`ImageFeatures` and :func:`verify_fundamental` live in
+  :mod:`pcrcg.vision.keypoints` (shared with :mod:`pcrcg.vision.learned`) and are imported from here too.
 * :class:`Matches` ``(uv_a (K, 2) float32, uv_b (K, 2) float32, confidence (K,) float32 in (0, 1])``;
   ``uv = (u, v) = (x, y)`` pixel coordinates of the *input* images (pixel centres at integers),
   whatever ``image_size`` the matcher resized them to internally.
@@ -50,6 +52,12 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from pcrcg.errors import ConfigError
+from pcrcg.vision.keypoints import ImageFeatures, Matches, check_image, verify_fundamental
+from pcrcg.vision import learned as disk_lightglue  # called as disk_lightglue.X: tests replace the networks there
+
+# Imported inside the functions that use them, so that importing this module (pcrcg.config does)
+# stays cheap and torch-free: cv2, tqdm and omegaconf (optional or slow to load), pcrcg.vision.pretrain
+# (it imports torch; covisibility only) and pcrcg.data.dataset (the CLI's).
 
 METHODS = ("sift", "orb", "lightglue")
 LEARNED_METHODS = ("lightglue",)  # pcrcg.vision.learned
@@ -140,70 +148,14 @@ class MatcherConfig:
         d["image_size"] = list(self.image_size) if self.image_size else None
         out = {k: d[k] for k in _KEY_FIELDS[self.method]}
         if self.learned:
-            from pcrcg.vision.learned import weights_digests
-
-            out["weights"] = weights_digests(self)
+            out["weights"] = disk_lightglue.weights_digests(self)
         return out
 
     def feature_key(self) -> dict[str, Any]:
         """The settings that change one image's keypoints (learned matcher's feature cache)."""
-        from pcrcg.vision.learned import weights_digests
-
         return {"method": self.method, "max_keypoints": int(self.max_keypoints), "nms_window": int(self.nms_window),
                 "image_size": list(self.image_size) if self.image_size else None,
-                "disk": weights_digests(self)["disk"]}
-
-
-@dataclass
-class Matches:
-    """Matched pixels of two images: ``uv_a[k]`` in image a matches ``uv_b[k]`` in image b."""
-
-    uv_a: np.ndarray
-    uv_b: np.ndarray
-    confidence: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.uv_a = np.asarray(self.uv_a, dtype=np.float32).reshape(-1, 2)
-        self.uv_b = np.asarray(self.uv_b, dtype=np.float32).reshape(-1, 2)
-        self.confidence = np.asarray(self.confidence, dtype=np.float32).reshape(-1)
-        if not len(self.uv_a) == len(self.uv_b) == len(self.confidence):
-            raise ValueError("Matches: uv_a, uv_b and confidence must have the same length")
-
-    def __len__(self) -> int:
-        return len(self.confidence)
-
-    @classmethod
-    def empty(cls) -> "Matches":
-        return cls(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.float32))
-
-    def swapped(self) -> "Matches":
-        """The same matches seen from image b."""
-        return Matches(self.uv_b, self.uv_a, self.confidence)
-
-
-@dataclass
-class ImageFeatures:
-    """Keypoints of one image, in the pixels of the image as matched (resized to ``size``).
-
-    ``uv`` (K, 2) float32 (u, v); ``descriptors`` (K, D) (float32 for SIFT and DISK, uint8 for ORB) or
-    None when nothing was found; ``scores`` (K,) float32 detector responses; ``size`` (h, w) of the
-    matched image; ``scale`` (sx, sy) from input pixels to matched pixels.
-    """
-
-    uv: np.ndarray
-    descriptors: np.ndarray | None
-    scores: np.ndarray
-    size: tuple[int, int]
-    scale: tuple[float, float] = (1.0, 1.0)
-
-    def __len__(self) -> int:
-        return 0 if self.descriptors is None else int(len(self.uv))
-
-    def to_input(self, uv: np.ndarray) -> np.ndarray:
-        """(K, 2) matched-image pixels -> input-image pixels (pixel-centre convention)."""
-        uv = np.asarray(uv, dtype=np.float64)
-        sx, sy = self.scale
-        return np.stack([(uv[:, 0] + 0.5) / sx - 0.5, (uv[:, 1] + 0.5) / sy - 0.5], 1)
+                "disk": disk_lightglue.weights_digests(self)["disk"]}
 
 
 # --------------------------------------------------------------------------- matching
@@ -220,20 +172,11 @@ def _to_dict(node: Any) -> dict[str, Any]:
     return dict(node)
 
 
-def _check_image(img: np.ndarray) -> np.ndarray:
-    img = np.asarray(img)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
-    if img.dtype != np.uint8:
-        raise ValueError(f"expected a uint8 image, got {img.dtype}")
-    return img
-
-
 def _gray(img: np.ndarray, size: tuple[int, int] | None) -> tuple[np.ndarray, float, float]:
     """RGB uint8 (H, W, 3) -> grayscale uint8 at ``size`` and the (sx, sy) scale from input to it."""
     import cv2
 
-    img = _check_image(img)
+    img = check_image(img)
     g = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
     h, w = g.shape
     if size is None or (size[0] == h and size[1] == w):
@@ -277,40 +220,6 @@ def _knn2(desc_q: np.ndarray, desc_t: np.ndarray, method: str) -> tuple[np.ndarr
     return idx, dist
 
 
-def _epipolar_distance(F: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
-    """Symmetric epipolar distance (pixels) of matches pa <-> pb (K, 2) under F (b^T F a = 0)."""
-    ha = np.concatenate([pa, np.ones((len(pa), 1))], 1).astype(np.float64)
-    hb = np.concatenate([pb, np.ones((len(pb), 1))], 1).astype(np.float64)
-    lb = ha @ F.T  # epipolar lines in b
-    la = hb @ F  # epipolar lines in a
-    num = np.abs(np.sum(hb * lb, axis=1))
-    da = num / np.maximum(np.hypot(la[:, 0], la[:, 1]), 1e-12)
-    db = num / np.maximum(np.hypot(lb[:, 0], lb[:, 1]), 1e-12)
-    return 0.5 * (da + db)
-
-
-def verify_fundamental(ma: np.ndarray, mb: np.ndarray, cfg: MatcherConfig) -> tuple[np.ndarray, np.ndarray] | None:
-    """Fundamental-matrix RANSAC (``ransac_threshold`` px, seeded) on candidate matches ma <-> mb (K, 2).
-
-    Returns ``(inliers (K,) bool, epipolar distance (K_in,) of the inliers)``, or None when it fails
-    or keeps fewer than ``max(min_matches, 8)``. The geometric verification of every method.
-    """
-    import cv2
-
-    need = max(int(cfg.min_matches), 8)
-    if len(ma) < need:
-        return None
-    ma, mb = np.asarray(ma, np.float64), np.asarray(mb, np.float64)
-    cv2.setRNGSeed(int(cfg.seed))
-    F, inl = cv2.findFundamentalMat(ma, mb, cv2.FM_RANSAC, float(cfg.ransac_threshold), 0.999, 2000)
-    if F is None or inl is None or F.shape != (3, 3):
-        return None
-    inl = inl.reshape(-1).astype(bool)
-    if inl.sum() < need:
-        return None
-    return inl, _epipolar_distance(F, ma[inl], mb[inl])
-
-
 def detect_features(images: Sequence[np.ndarray], cfg: MatcherConfig | None = None) -> list[ImageFeatures]:
     """Keypoints + descriptors of each RGB image (H, W, 3) uint8, at ``cfg.image_size``.
 
@@ -318,9 +227,7 @@ def detect_features(images: Sequence[np.ndarray], cfg: MatcherConfig | None = No
     """
     cfg = cfg or MatcherConfig()
     if cfg.learned:
-        from pcrcg.vision.learned import disk_features
-
-        return disk_features(images, cfg)
+        return disk_lightglue.disk_features(images, cfg)
     out = []
     for img in images:
         g, sx, sy = _gray(img, cfg.image_size)
@@ -339,9 +246,7 @@ def match_features(fa: ImageFeatures, fb: ImageFeatures, cfg: MatcherConfig | No
     """
     cfg = cfg or MatcherConfig()
     if cfg.learned:
-        from pcrcg.vision.learned import lightglue_matches
-
-        return lightglue_matches(fa, fb, cfg)
+        return disk_lightglue.lightglue_matches(fa, fb, cfg)
     need = max(int(cfg.min_matches), 8)
     pa, da, pb, db = fa.uv, fa.descriptors, fb.uv, fb.descriptors
     if da is None or db is None or len(pa) < need or len(pb) < need:
