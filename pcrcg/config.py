@@ -7,8 +7,9 @@ the allowed values:
   (``projection=foo`` names the options that exist, ``window_size=0,3`` the allowed sizes);
 * :func:`validate_run_config`: the composed config, against structured schemas
   (dataclasses merged with OmegaConf, then instantiated so that their checks run) for the
-  top-level keys and the ``logger``/``profile`` groups, the option chosen for every other
-  group, and the rules that tie settings together;
+  top-level keys and the ``logger`` group, the option chosen for every group (and the
+  ``name`` its node gives: one of the group's option files), and the rules that tie settings
+  together;
 * :func:`preflight`: resources the run needs that are not part of the config itself
   (weights files); the pipeline calls it inside the tracked run so that a sweep records
   the variant as not run, with the reason.
@@ -40,18 +41,10 @@ ICP_INIT = ("identity", "learned")
 N_POINTS = (5000, 2500, 1000, 500, 250)
 MAX_WINDOW = 101
 
-# config groups composed by conf/run.yaml, in its defaults order
+# config groups composed by conf/run.yaml, in its defaults order; the options of each are its files
+# (conf/<group>/*.yaml, :func:`group_options`), and a group node's ``name`` must be one of them
 GROUPS = ("data", "profile", "model", "encoder2d", "features", "projection", "matcher2d", "trainer", "registration",
           "logger")
-# the implementations the code knows; a group folder's option files are checked against this
-KNOWN_OPTIONS: dict[str, tuple[str, ...]] = {
-    "data": ("synthmatch", "redkitchen", "threedmatch"),
-    "profile": ("tiny", "cpu", "paper", "official"),
-    "encoder2d": ("scratch", "imagenet", "pri3d"),
-    "features": ("none", "rgb", "sift", "deep", "disk"),
-    "projection": ("none", "implicit", "explicit"),
-    "logger": ("mlflow", "none"),
-}
 # group options whose encoder needs a weights file
 PRETRAINED_ENCODERS = ("imagenet", "pri3d")
 
@@ -195,19 +188,11 @@ class LoggerSchema:
     log_checkpoint: bool = True
 
     def __post_init__(self) -> None:
-        _one_of("logger.name", self.name, KNOWN_OPTIONS["logger"])
+        # name: one of the option files of conf/logger/, checked as every group's name (_validate_run_config)
         _one_of("logger.identity", self.identity, IDENTITIES)
 
 
-@dataclass
-class ProfileNameSchema:
-    name: str = "cpu"
-
-    def __post_init__(self) -> None:
-        _one_of("profile.name", self.name, KNOWN_OPTIONS["profile"])
-
-
-GROUP_SCHEMAS: dict[str, type] = {"logger": LoggerSchema, "profile": ProfileNameSchema}
+GROUP_SCHEMAS: dict[str, type] = {"logger": LoggerSchema}
 
 
 def _structured_check(schema: type, data: Mapping[str, Any], prefix: str) -> Any:
@@ -278,6 +263,27 @@ def group_options(group: str, search_dirs: Sequence[Path] = (CONF_DIR,)) -> list
         if gd.is_dir():
             names.update(p.stem for p in gd.glob("*.yaml"))
     return sorted(names)
+
+
+def profile_node(name: str, conf_dir: str | Path = CONF_DIR) -> DictConfig:
+    """``conf/profile/<name>.yaml`` as Hydra composes it, without Hydra: merged over the files its
+    ``defaults`` list extends (every profile extends ``common/base.yaml``, ``official`` extends ``paper``),
+    for tools that read a profile beside a group file (pcrcg.benchmarks, pcrcg.data.stats)."""
+    folder = Path(conf_dir) / "profile"
+
+    def load(rel: str) -> DictConfig:
+        node = OmegaConf.load(folder / f"{rel}.yaml")
+        assert isinstance(node, DictConfig)
+        entries = [str(d) for d in (node.pop("defaults", None) or [])]
+        if "_self_" not in entries:
+            entries.append("_self_")
+        # an entry names a file relative to this one's folder (official: paper; paper: common/base@_here_)
+        parts = [node if d == "_self_" else load(str(Path(rel).parent / d.split("@")[0])) for d in entries]
+        merged = OmegaConf.merge(*parts)
+        assert isinstance(merged, DictConfig)
+        return merged
+
+    return load(name)
 
 
 def _element_value(v: Any) -> Any:
@@ -353,7 +359,7 @@ def validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None = Non
     ``choices``: Hydra's ``runtime.choices`` (group -> chosen option) when known;
     ``data``: ``cfg`` already resolved to plain containers (saves resolving it again).
     An error names the key the user set: a value interpolated from another key
-    (``trainer.max_epochs: ${oc.select:profile.train.max_epochs,30}``) is reported as that key.
+    (``trainer.max_epochs: ${profile.train.max_epochs}``) is reported as that key.
     """
     try:
         return _validate_run_config(cfg, choices, search_dirs, data)
@@ -417,9 +423,8 @@ def _validate_run_config(cfg: DictConfig, choices: Mapping[str, str] | None,
         if chosen is not None and available and chosen not in available:
             raise ConfigError(group, chosen, _fmt(available))
         name = node.get("name") if isinstance(node, Mapping) else None
-        known = KNOWN_OPTIONS.get(group)
-        if name is not None and known is not None and name not in known:
-            raise ConfigError(f"{group}.name", name, _fmt(known))
+        if name is not None and available and str(name) not in available:
+            raise ConfigError(f"{group}.name", name, _fmt(available))
     _check_data_version(data.get("data"))
     _check_rules(top, data)
     return top

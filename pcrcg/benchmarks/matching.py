@@ -253,13 +253,11 @@ def default_root() -> Path:
 def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks: Sequence[str] = ("3DMatch", "3DLoMatch"),
                     depth_tolerance: float = 0.1, profile: str = "cpu",
                     pair_modes: Sequence[str] = ("paper",)) -> tuple[list[dict], str]:
-    from omegaconf import OmegaConf
-
-    from pcrcg.config import CONF_DIR
+    from pcrcg.config import profile_node
     from pcrcg.lifting.coverage import coverage_sweep, load_samples
     from pcrcg.vision.matching import MatchCache, matched_view_pairs
 
-    grid = tuple(OmegaConf.load(Path(CONF_DIR) / "profile" / f"{profile}.yaml").lifting.image_size)
+    grid = tuple(profile_node(profile).lifting.image_size)
     rows = []
     with tempfile.TemporaryDirectory(prefix="pcrcg-matchbench-") as tmp:
         for bench in benchmarks:

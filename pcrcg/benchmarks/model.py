@@ -93,8 +93,10 @@ def profile_config(profile: str, model: str = "predator") -> dict[str, Any]:
     """The resolved ``model`` and ``trainer`` nodes of a profile (no Hydra needed)."""
     from omegaconf import OmegaConf
 
+    from pcrcg.config import profile_node
+
     root = OmegaConf.create({
-        "profile": OmegaConf.load(CONF / "profile" / f"{profile}.yaml"),
+        "profile": profile_node(profile, CONF),
         "model": model_node(model),
         "trainer": OmegaConf.load(CONF / "trainer" / "default.yaml"),
     })

@@ -252,11 +252,11 @@ def matcher_configs(profile: str) -> dict[str, Any]:
     (``lifting.image_size``, the projection's grid) and the same at the images' native size."""
     from omegaconf import OmegaConf
 
-    from pcrcg.config import CONF_DIR
+    from pcrcg.config import CONF_DIR, profile_node
     from pcrcg.vision.matching import MatcherConfig
 
     conf = Path(CONF_DIR)
-    node = OmegaConf.create({"profile": OmegaConf.load(conf / "profile" / f"{profile}.yaml"),
+    node = OmegaConf.create({"profile": profile_node(profile, conf),
                              "matcher2d": OmegaConf.load(conf / "matcher2d" / "sift.yaml")})
     m = OmegaConf.to_container(node.matcher2d, resolve=True)
     grid = MatcherConfig.from_cfg(m)
