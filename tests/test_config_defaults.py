@@ -73,12 +73,13 @@ def test_profile_values_reach_the_groups():
     cpu, paper = (load_run_config([f"profile={p}"]) for p in ("cpu", "paper"))
     assert cpu.model.voxel_size == 0.06 and paper.model.voxel_size == 0.025
     assert cpu.registration.ransac.distance == pytest.approx(0.12) and paper.registration.fpfh.voxel == 0.025
-    assert (cpu.trainer.optim.name, cpu.trainer.optim.lr) == ("adam", 0.001)
+    assert (cpu.trainer.optim.name, cpu.trainer.optim.lr) == ("adam", 0.002)
     assert (paper.trainer.optim.name, paper.trainer.optim.lr) == ("sgd", 0.005)  # the group's default
     assert cpu.model.loss.max_points == 1024 and paper.model.loss.max_points == 256
     assert cpu.eval.max_pairs == 500 and paper.eval.max_pairs is None
     assert (cpu.trainer.num_workers, paper.trainer.num_workers, paper.trainer.cache_size) == (0, 4, 64)
-    assert cpu.trainer.cache_size == 1024 and cpu.trainer.max_epochs == 2 and paper.trainer.max_epochs == 30
+    assert cpu.trainer.cache_size == 1024 and cpu.trainer.max_epochs == 12 and paper.trainer.max_epochs == 30
+    assert (cpu.trainer.optim.lr_decay, paper.trainer.optim.lr_decay) == (0.75, 0.95)  # paper: the group's default
     assert list(cpu.encoder2d.image_size) == [120, 160] and list(paper.encoder2d.image_size) == [240, 320]
     assert list(cpu.projection.image_size) == list(paper.projection.image_size) == [120, 160]
     assert cpu.encoder2d.arch == "resnet18" and paper.encoder2d.arch == "resnet50"
