@@ -382,3 +382,12 @@ def test_metrics_json_holds_no_bare_nan(tmp_path):
     text = strict_json({"3DMatch/rre": float("nan"), "x": [np.float32(1.5), float("inf")], "n": np.int64(3)})
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == {"3DMatch/rre": None, "x": [1.5, None], "n": 3}
+
+
+def test_a_benchmark_tool_given_a_missing_checkpoint_says_so_in_one_line(tmp_path):
+    missing = tmp_path / "nowhere" / "model.ckpt"
+    proc = subprocess.run([sys.executable, "-m", "pcrcg.benchmarks.evaluation", str(missing)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pcrcg.benchmarks.evaluation: error: ") and str(missing) in lines[0]

@@ -86,4 +86,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.benchmarks.evaluation"):  # a bad file or setting: one line, exit 2
+        main()

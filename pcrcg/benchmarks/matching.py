@@ -390,4 +390,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, list[dict]]:
 
 
 if __name__ == "__main__":
-    main()
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.benchmarks.matching"):  # a bad file or setting: one line, exit 2
+        main()

@@ -351,4 +351,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    main()
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.benchmarks.model"):  # a bad file or setting: one line, exit 2
+        main()

@@ -155,4 +155,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    from pcrcg.cli import one_line_errors
+
+    with one_line_errors("pcrcg.benchmarks.vision"):  # a bad file or setting: one line, exit 2
+        main()
