@@ -22,7 +22,7 @@ Public API (imported lazily, so ``import pcrcg.models`` stays cheap):
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Any, Callable, Mapping
 
 _EXPORTS = {
     "Predator": "predator", "PredatorConfig": "predator", "PredatorOutput": "predator", "build_predator": "predator",
@@ -37,10 +37,19 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"pcrcg.models.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'pcrcg.models' has no attribute {name!r}")
+def lazy_exports(package: str, exports: Mapping[str, str]) -> Callable[[str], Any]:
+    """A package's module-level ``__getattr__``: ``name`` in ``exports`` is imported from the submodule
+    ``<package>.<exports[name]>`` when first asked for (the subpackages of pcrcg.models use it too)."""
+
+    def __getattr__(name: str) -> Any:
+        if name in exports:
+            return getattr(importlib.import_module(f"{package}.{exports[name]}"), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__
+
+
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 
 __all__ = sorted(_EXPORTS)

@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader
 from pcrcg.data.dataset import PairDataset, PairSample, View
 from pcrcg.errors import ConfigError
 from pcrcg.geometry import invert, make_transform, random_rotation, transform_points
-from pcrcg.models.fields import known_fields
+from pcrcg.models.fields import NodeSettings
 from pcrcg.models.kpconv.ops import radius_pairs
 from pcrcg.models.kpconv.pyramid import (
     FragmentPyramid,
@@ -46,7 +46,7 @@ from pcrcg.models.kpconv.pyramid import (
 
 
 @dataclass
-class AugmentConfig:
+class AugmentConfig(NodeSettings):
     """Rotate one fragment (chosen at random) about its origin by an angle uniform in
     [0, ``rotation_range_deg``] about a random axis; Gaussian noise of ``noise_std`` m on the
     level-0 points of both. Predator's noise is uniform of width 5 mm (std 1.4 mm), hence 0.0015."""
@@ -54,10 +54,6 @@ class AugmentConfig:
     enabled: bool = True
     rotation_range_deg: float = 360.0
     noise_std: float = 0.0015
-
-    @classmethod
-    def from_mapping(cls, m: Mapping[str, Any] | None) -> "AugmentConfig":
-        return cls(**known_fields(cls, m))
 
 
 @dataclass

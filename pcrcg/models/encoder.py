@@ -13,7 +13,7 @@ This is Predator's 3DMatch encoder and GeoTransformer's KPConv-FPN encoder (its 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
 import torch
@@ -44,6 +44,23 @@ class KPConvSettings:
         """The entries of ``m`` (a ``model`` config node; other models' keys are ignored) that are
         fields of ``cls``, with ``overrides`` on top."""
         return known_fields(cls, m, **overrides)
+
+    @classmethod
+    def from_config(cls, cfg: Any, in_dim: int | None = None) -> Any:
+        """``cfg`` as a ``cls``: a ``model`` config node through ``cls.from_mapping``, or a ``cls``
+        itself (a copy when ``in_dim`` is given); ``in_dim``, when given, replaces the input width."""
+        if isinstance(cfg, cls):
+            return cfg if in_dim is None else replace(cfg, in_dim=in_dim)
+        return cls.from_mapping(cfg, **({"in_dim": in_dim} if in_dim is not None else {}))
+
+    def metres(self, voxels: float) -> float:
+        """A length given in level-0 voxels, in metres."""
+        return float(voxels) * float(self.voxel_size)
+
+    @property
+    def coarse_level(self) -> int:
+        """The coarsest level of the pyramid."""
+        return self.num_layers - 1
 
 
 @dataclass(frozen=True)

@@ -25,16 +25,15 @@ All radii are given in metres here; the config gives them in voxel units (see :c
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
 
-from pcrcg.models.fields import known_fields
+from pcrcg.models.fields import NodeSettings
 
 
 @dataclass
-class LossConfig:
+class LossConfig(NodeSettings):
     """Loss settings; ``*_radius`` in units of the model voxel size (Predator at 2.5 cm:
     pos/overlap 0.0375 m = 1.5 voxels, safe 0.1 m = 4, matchability 0.05 m = 2)."""
 
@@ -53,10 +52,6 @@ class LossConfig:
     w_matchability: float = 1.0
     # Predator adds the matchability loss once the validation feature-match recall exceeds this
     matchability_after_recall: float = 0.3
-
-    @classmethod
-    def from_mapping(cls, m: Mapping[str, Any] | None) -> "LossConfig":
-        return cls(**known_fields(cls, m))
 
 
 def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,

@@ -16,7 +16,7 @@ The input width ``in_dim`` is the only thing PCR-CG changes: 1 (a constant) + th
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import torch
@@ -247,8 +247,4 @@ class Predator(nn.Module):
 
 def build_predator(cfg: Mapping[str, Any] | PredatorConfig, in_dim: int | None = None) -> Predator:
     """Predator from a config mapping (``conf/model/predator.yaml``) or a :class:`PredatorConfig`."""
-    if isinstance(cfg, PredatorConfig):
-        c = cfg if in_dim is None else PredatorConfig(**{**asdict(cfg), "in_dim": in_dim})
-    else:
-        c = PredatorConfig.from_mapping(cfg, **({"in_dim": in_dim} if in_dim is not None else {}))
-    return Predator(c)
+    return Predator(PredatorConfig.from_config(cfg, in_dim))

@@ -45,6 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.data.layout import evenly
 from pcrcg.errors import ConfigError, DataError, one_line
+from pcrcg.models.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import FragmentOutput, PairOutput, PCRCGModule, build_lifter_from
 
@@ -59,14 +60,8 @@ def _container(node: Any) -> Any:
 
 def _get(cfg: Any, key: str, default: Any = None) -> Any:
     if isinstance(cfg, DictConfig):
-        v = OmegaConf.select(cfg, key, default=default)
-        return _container(v)
-    node = cfg
-    for part in key.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return default
-        node = node[part]
-    return copy.deepcopy(node)
+        return _container(OmegaConf.select(cfg, key, default=default))
+    return copy.deepcopy(lookup(cfg, key, default))
 
 
 def lifting_section(cfg: Any) -> dict[str, Any] | None:

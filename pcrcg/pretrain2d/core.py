@@ -34,6 +34,7 @@ import torch
 
 from pcrcg.data.layout import Layout
 from pcrcg.errors import ConfigError, DataError
+from pcrcg.models.fields import lookup
 from pcrcg.pretrain2d.frames import FrameCache, FrameSequence, list_sequences, load_sequence
 from pcrcg.vision.encoders import ARCHS, INITS, ResUNet, build_encoder, save_pri3d_checkpoint
 from pcrcg.vision.pretrain import (
@@ -59,16 +60,8 @@ HOLDOUT = "holdout"
 # --------------------------------------------------------------------------- settings
 
 
-def _get(node: Any, dotted: str, default: Any = None) -> Any:
-    for part in dotted.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return default
-        node = node[part]
-    return node
-
-
 def _int(cfg: Mapping, key: str, low: int, allow_none: bool = False) -> int | None:
-    v = _get(cfg, key)
+    v = lookup(cfg, key)
     if v is None and allow_none:
         return None
     if isinstance(v, bool) or not isinstance(v, int) or v < low:
@@ -77,7 +70,7 @@ def _int(cfg: Mapping, key: str, low: int, allow_none: bool = False) -> int | No
 
 
 def _num(cfg: Mapping, key: str, low: float, high: float = math.inf, low_open: bool = False) -> float:
-    v = _get(cfg, key)
+    v = lookup(cfg, key)
     ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
     ok = ok and (v > low if low_open else v >= low) and v <= high
     if not ok:
@@ -126,20 +119,20 @@ class Settings:
 
 def check_settings(cfg: Mapping[str, Any]) -> Settings:
     """Check every setting of the pretraining config (plain dict); ConfigError names the first bad one."""
-    size = _get(cfg, "image_size")
+    size = lookup(cfg, "image_size")
     if size is not None:
         if (not isinstance(size, (list, tuple)) or len(size) != 2
                 or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 32 for s in size)):
             raise ConfigError("image_size", size, "null or [H, W] with integers >= 32")
         size = (int(size[0]), int(size[1]))
-    crop = _get(cfg, "train.crop")
+    crop = lookup(cfg, "train.crop")
     if crop is not None:
         if (not isinstance(crop, (list, tuple)) or len(crop) != 2
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 32 for c in crop)
                 or (size is not None and (crop[0] > size[0] or crop[1] > size[1]))):
             raise ConfigError("train.crop", crop, f"null or [h, w] with integers >= 32, at most image_size {size}")
         crop = (int(crop[0]), int(crop[1]))
-    enc = _get(cfg, "encoder2d") or {}
+    enc = lookup(cfg, "encoder2d") or {}
     if enc.get("name", "scratch") not in INITS:
         raise ConfigError("encoder2d.name", enc.get("name"), " | ".join(INITS))
     if enc.get("arch", "resnet18") not in ARCHS:
@@ -153,24 +146,24 @@ def check_settings(cfg: Mapping[str, Any]) -> Settings:
     max_gap = _int(cfg, "pairs.max_frame_gap", 1)
     if max_gap < min_gap:
         raise ConfigError("pairs.max_frame_gap", max_gap, f"an integer >= pairs.min_frame_gap ({min_gap})")
-    splits = _get(cfg, "train.splits")
+    splits = lookup(cfg, "train.splits")
     if isinstance(splits, str):
         splits = [splits]
     if not splits or not all(isinstance(s, str) and s for s in splits):
         raise ConfigError("train.splits", splits, "a non-empty list of split names (train, val, test)")
-    opt = _get(cfg, "train.optimizer")
+    opt = lookup(cfg, "train.optimizer")
     if opt not in OPTIMIZERS:
         raise ConfigError("train.optimizer", opt, " | ".join(OPTIMIZERS))
-    sched = _get(cfg, "train.lr_schedule")
+    sched = lookup(cfg, "train.lr_schedule")
     if sched not in SCHEDULES:
         raise ConfigError("train.lr_schedule", sched, " | ".join(SCHEDULES))
-    eval_split = _get(cfg, "eval.split")
+    eval_split = lookup(cfg, "eval.split")
     if not isinstance(eval_split, str) or not eval_split:
         raise ConfigError("eval.split", eval_split, f"a split name (val, test) or {HOLDOUT}")
     for key in ("train.symmetric",):
-        if not isinstance(_get(cfg, key), bool):
-            raise ConfigError(key, _get(cfg, key), "true or false")
-    seed = _get(cfg, "seed")
+        if not isinstance(lookup(cfg, key), bool):
+            raise ConfigError(key, lookup(cfg, key), "true or false")
+    seed = lookup(cfg, "seed")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError("seed", seed, "an integer")
     return Settings(
@@ -182,7 +175,7 @@ def check_settings(cfg: Mapping[str, Any]) -> Settings:
         train_splits=tuple(splits), steps=_int(cfg, "train.steps", 0), batch_pairs=_int(cfg, "train.batch_pairs", 1),
         crop=crop,
         points=_int(cfg, "train.points", 2), min_points=_int(cfg, "train.min_points", 2),
-        temperature=_num(cfg, "train.temperature", 0.0, low_open=True), symmetric=bool(_get(cfg, "train.symmetric")),
+        temperature=_num(cfg, "train.temperature", 0.0, low_open=True), symmetric=bool(lookup(cfg, "train.symmetric")),
         optimizer=opt, lr=_num(cfg, "train.lr", 0.0, low_open=True), weight_decay=_num(cfg, "train.weight_decay", 0.0),
         lr_schedule=sched, warmup_steps=_int(cfg, "train.warmup_steps", 0),
         color_jitter=_num(cfg, "train.color_jitter", 0.0, 0.9), loss_window=_int(cfg, "train.loss_window", 1),
@@ -380,8 +373,8 @@ def _abs(path: Any, base: Path) -> Path:
 def pretrained_on(cfg: Mapping[str, Any]) -> str:
     """What the pretraining sees, as ``encoder2d.pretrained_on`` names it: ``<data.name>-seed<data_seed>`` for
     generated data (another seed = other rooms than the benchmark's seed 0), ``<data.name>`` for real frames."""
-    name = str(_get(cfg, "data.name", "data"))
-    if _get(cfg, "data.synth") is not None:  # generated
+    name = str(lookup(cfg, "data.name", "data"))
+    if lookup(cfg, "data.synth") is not None:  # generated
         return f"{name}-seed{int(cfg.get('data_seed', 0) or 0)}"
     return name
 
@@ -390,10 +383,10 @@ def default_checkpoint(cfg: Mapping[str, Any], base: Path) -> Path:
     """``<paths.checkpoints>/pretrain2d/<pretrained_on>-<profile.name>/pri3d_<arch>.pth`` (or ``out``)."""
     if cfg.get("out"):
         return _abs(cfg["out"], base)
-    root = _abs(_get(cfg, "paths.checkpoints", "checkpoints"), base)
-    profile = _get(cfg, "profile.data_profile") or _get(cfg, "profile.name", "default")  # official: paper's
+    root = _abs(lookup(cfg, "paths.checkpoints", "checkpoints"), base)
+    profile = lookup(cfg, "profile.data_profile") or lookup(cfg, "profile.name", "default")  # official: paper's
     tag = f"{pretrained_on(cfg)}-{profile}"
-    return root / "pretrain2d" / tag / f"pri3d_{_get(cfg, 'encoder2d.arch', 'resnet18')}.pth"
+    return root / "pretrain2d" / tag / f"pri3d_{lookup(cfg, 'encoder2d.arch', 'resnet18')}.pth"
 
 
 def _resolve_device(requested: Any) -> torch.device:
@@ -444,14 +437,14 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
             return {**prev, "checkpoint": str(out), "reused": True}
     if s.num_threads:
         torch.set_num_threads(s.num_threads)
-    show = bool(_get(data, "runtime.progress", True)) if progress is None else progress
-    device = _resolve_device(_get(data, "runtime.device"))
+    show = bool(lookup(data, "runtime.progress", True)) if progress is None else progress
+    device = _resolve_device(lookup(data, "runtime.device"))
 
     # ---- data
     root = _data_root(data, base, log)
     layout = Layout(root)
     rng = np.random.default_rng(s.seed)
-    cache = FrameCache(int(_get(data, "runtime.cache_frames", 4000) or 0))
+    cache = FrameCache(int(lookup(data, "runtime.cache_frames", 4000) or 0))
     train_seqs, eval_seqs, eval_split = _sequences(layout, s, log, cache)
     pairs = _training_pairs(train_seqs, s, rng, root)
     items = _held_out_items(eval_seqs, s, root)
@@ -559,7 +552,7 @@ def _save(model: ResUNet, out: Path, data: Mapping[str, Any], h: str, root: Path
     from pcrcg.tracking.git import git_info
     from pcrcg.tracking.hashing import flatten
 
-    meta = {"config_hash": h, "profile": _get(data, "profile.name"), "data_root": str(root),
+    meta = {"config_hash": h, "profile": lookup(data, "profile.name"), "data_root": str(root),
             "image_size": result["image_size"], "created": time.strftime("%Y-%m-%d %H:%M:%S"),
             "config": flatten({k: v for k, v in data.items() if k not in ("hydra",)}), "result": dict(result)}
     meta["git_sha"] = git_info()[0]
@@ -608,18 +601,18 @@ def _train_and_evaluate(model: ResUNet, train_seqs, eval_seqs, pairs, items, s: 
 
 
 def _start_tracking(data: Mapping[str, Any], h: str, base: Path, out: Path, log) -> tuple[Any, str | None]:
-    if _get(data, "logger.name", "none") != "mlflow":
+    if lookup(data, "logger.name", "none") != "mlflow":
         return None, None
     from pcrcg.tracking.git import git_info
     from pcrcg.tracking.hashing import flatten
     from pcrcg.tracking.runs import TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE, RunTracker
     from pcrcg.tracking.store import resolve_tracking_uri
 
-    uri = resolve_tracking_uri(_get(data, "logger.tracking_uri"), base)
+    uri = resolve_tracking_uri(lookup(data, "logger.tracking_uri"), base)
     tracker = RunTracker(uri, EXPERIMENT)
     sha, dirty = git_info()
-    profile = str(_get(data, "profile.name", "?"))
-    arch = str(_get(data, "encoder2d.arch", "?"))
+    profile = str(lookup(data, "profile.name", "?"))
+    arch = str(lookup(data, "encoder2d.arch", "?"))
     run_id = tracker.start(f"pri3d_{arch}-{profile}", {
         TAG_EXPERIMENT: EXPERIMENT, TAG_HASH: h, TAG_GIT: sha, "git_dirty": str(dirty).lower(), TAG_PROFILE: profile,
         "checkpoint": str(out), "mlflow.source.git.commit": sha})

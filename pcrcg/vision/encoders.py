@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pcrcg.errors import ConfigError, DataError
+from pcrcg.models.fields import option
 
 ARCHS = {"resnet18": ("basic", (2, 2, 2, 2)), "resnet34": ("basic", (3, 4, 6, 3)), "resnet50": ("bottleneck", (3, 4, 6, 3))}
 INITS = ("scratch", "imagenet", "pri3d")
@@ -333,27 +334,19 @@ def load_pri3d_checkpoint(model: ResUNet, path: str | os.PathLike, load_decoder:
     return dict(ckpt.get("meta") or {})
 
 
-def _get(cfg: Any, key: str, default: Any = None) -> Any:
-    if cfg is None:
-        return default
-    if isinstance(cfg, Mapping):
-        return cfg.get(key, default)
-    return getattr(cfg, key, default)
-
-
 def build_encoder(cfg: Any, out_dim: int | None = None) -> ResUNet:
     """A :class:`ResUNet` from an ``encoder2d`` config node (see the module docstring)."""
-    name = _get(cfg, "name", "scratch")
+    name = option(cfg, "name", "scratch")
     if name not in INITS:
         raise ConfigError("encoder2d.name", name, " | ".join(INITS))
-    arch = _get(cfg, "arch", "resnet18")
+    arch = option(cfg, "arch", "resnet18")
     if arch not in ARCHS:
         raise ConfigError("encoder2d.arch", arch, " | ".join(ARCHS))
-    width = int(out_dim if out_dim is not None else _get(cfg, "out_dim", 32))
-    dec = _get(cfg, "decoder_channels", None) or (256, 128, 64, 64, 32)
-    model = ResUNet(arch, width, decoder_channels=list(dec), normalize=bool(_get(cfg, "normalize", True)),
-                    output_scale=str(_get(cfg, "output_scale", "full") or "full"))
-    weights = _get(cfg, "weights", None)
+    width = int(out_dim if out_dim is not None else option(cfg, "out_dim", 32))
+    dec = option(cfg, "decoder_channels", None) or (256, 128, 64, 64, 32)
+    model = ResUNet(arch, width, decoder_channels=list(dec), normalize=bool(option(cfg, "normalize", True)),
+                    output_scale=str(option(cfg, "output_scale", "full") or "full"))
+    weights = option(cfg, "weights", None)
     if name in ("imagenet", "pri3d") and not weights:
         raise ConfigError("encoder2d.weights", weights,
                           f"a path to a local {'torchvision ResNet state dict' if name == 'imagenet' else 'pri3d checkpoint'} "
@@ -361,9 +354,9 @@ def build_encoder(cfg: Any, out_dim: int | None = None) -> ResUNet:
     if name == "imagenet":
         load_torchvision_weights(model, weights)
     elif name == "pri3d":
-        load_pri3d_checkpoint(model, weights, load_decoder=bool(_get(cfg, "load_decoder", True)))
+        load_pri3d_checkpoint(model, weights, load_decoder=bool(option(cfg, "load_decoder", True)))
     elif weights:
         raise ConfigError("encoder2d.weights", weights, "null for encoder2d=scratch (use imagenet or pri3d to load a file)")
-    if bool(_get(cfg, "freeze", False)):
+    if bool(option(cfg, "freeze", False)):
         model.freeze_encoder(True)
     return model

@@ -26,13 +26,14 @@ Feature maps may have any resolution: the lifting stage resamples them to its pr
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
 from pcrcg.errors import ConfigError
+from pcrcg.models.fields import option
 from pcrcg.vision.encoders import build_encoder
 from pcrcg.vision.keypoints import sift_projection
 from pcrcg.vision import learned  # called as learned.dense_disk_maps: a test may replace it there
@@ -170,25 +171,17 @@ class FeatureExtractor(nn.Module):
         return out  # type: ignore[return-value]
 
 
-def _get(cfg: Any, key: str, default: Any = None) -> Any:
-    if cfg is None:
-        return default
-    if isinstance(cfg, Mapping):
-        return cfg.get(key, default)
-    return getattr(cfg, key, default)
-
-
 def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> FeatureExtractor:
     """A :class:`FeatureExtractor` from the ``features`` (and, for ``deep``, ``encoder2d``) config nodes."""
-    kind = _get(features_cfg, "name", "rgb")
+    kind = option(features_cfg, "name", "rgb")
     if kind not in KINDS:
         raise ConfigError("features.name", kind, " | ".join(KINDS))
-    dim = int(_get(features_cfg, "dim", 3 if kind == "rgb" else 32) or 0)
+    dim = int(option(features_cfg, "dim", 3 if kind == "rgb" else 32) or 0)
     encoder = None
-    image_size = _get(features_cfg, "image_size", None) if kind == "disk" else None
+    image_size = option(features_cfg, "image_size", None) if kind == "disk" else None
     if kind == "deep":
         encoder = build_encoder(encoder_cfg, out_dim=dim)
-        image_size = _get(encoder_cfg, "image_size", None)
-    return FeatureExtractor(kind, dim, encoder, image_size, int(_get(features_cfg, "step", 4)),
-                            float(_get(features_cfg, "size", 8.0)), int(_get(features_cfg, "seed", 0)),
-                            weights=_get(features_cfg, "weights", None) if kind == "disk" else None)
+        image_size = option(encoder_cfg, "image_size", None)
+    return FeatureExtractor(kind, dim, encoder, image_size, int(option(features_cfg, "step", 4)),
+                            float(option(features_cfg, "size", 8.0)), int(option(features_cfg, "seed", 0)),
+                            weights=option(features_cfg, "weights", None) if kind == "disk" else None)

@@ -16,8 +16,7 @@ Names are imported lazily (``from pcrcg.models.cofinet import build_cofinet``).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from pcrcg.models import lazy_exports
 
 _EXPORTS = {
     "CoFiLossConfig": "config", "CoFiNetConfig": "config", "cofinet_loss": "loss",
@@ -25,10 +24,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"pcrcg.models.cofinet.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'pcrcg.models.cofinet' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 
 __all__ = sorted(_EXPORTS)

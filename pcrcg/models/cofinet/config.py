@@ -16,24 +16,20 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.fields import known_fields
+from pcrcg.models.fields import NodeSettings
 from pcrcg.models.encoder import KPConvSettings
 
 BLOCKS = ("self", "cross")
 
 
 @dataclass
-class CoFiLossConfig:
+class CoFiLossConfig(NodeSettings):
     """Loss weights (``model.loss``) and the level-0 correspondence radius of the data pipeline
     (``overlap_radius``, voxels), from which the coarse ground truth is made."""
 
     w_coarse: float = 1.0
     w_fine: float = 1.0
     overlap_radius: float = 1.5
-
-    @classmethod
-    def from_mapping(cls, m: Mapping[str, Any] | None) -> "CoFiLossConfig":
-        return cls(**known_fields(cls, m))
 
 
 @dataclass
@@ -74,13 +70,6 @@ class CoFiNetConfig(KPConvSettings):
         cfg = cls(**kw)
         cfg.validate()
         return cfg
-
-    def metres(self, voxels: float) -> float:
-        return float(voxels) * float(self.voxel_size)
-
-    @property
-    def coarse_level(self) -> int:
-        return self.num_layers - 1
 
     def validate(self) -> None:
         def integer(name: str, low: int) -> int:

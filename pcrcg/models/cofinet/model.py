@@ -190,10 +190,4 @@ class CoFiNet(nn.Module):
 
 def build_cofinet(cfg: Mapping[str, Any] | CoFiNetConfig, in_dim: int | None = None) -> CoFiNet:
     """CoFiNet from the ``model`` config node (``conf/model/cofinet.yaml``)."""
-    if isinstance(cfg, CoFiNetConfig):
-        from dataclasses import replace
-
-        c = cfg if in_dim is None else replace(cfg, in_dim=in_dim)
-    else:
-        c = CoFiNetConfig.from_mapping(cfg, **({"in_dim": in_dim} if in_dim is not None else {}))
-    return CoFiNet(c)
+    return CoFiNet(CoFiNetConfig.from_config(cfg, in_dim))

@@ -13,8 +13,7 @@ Names are imported lazily (``from pcrcg.models.geotransformer import build_geotr
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from pcrcg.models import lazy_exports
 
 _EXPORTS = {
     "GeoLossConfig": "config", "GeoTransformerConfig": "config", "geotransformer_loss": "loss",
@@ -22,10 +21,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"pcrcg.models.geotransformer.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'pcrcg.models.geotransformer' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)
 
 
 __all__ = sorted(_EXPORTS)

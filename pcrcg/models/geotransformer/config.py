@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.fields import known_fields
+from pcrcg.models.fields import NodeSettings
 from pcrcg.models.encoder import KPConvSettings
 
 
 @dataclass
-class GeoLossConfig:
+class GeoLossConfig(NodeSettings):
     """Loss settings (``model.loss``); ``positive_radius`` in voxels."""
 
     positive_margin: float = 0.1
@@ -34,10 +34,6 @@ class GeoLossConfig:
     positive_radius: float = 2.0
     w_coarse: float = 1.0
     w_fine: float = 1.0
-
-    @classmethod
-    def from_mapping(cls, m: Mapping[str, Any] | None) -> "GeoLossConfig":
-        return cls(**known_fields(cls, m))
 
 
 @dataclass
@@ -84,16 +80,9 @@ class GeoTransformerConfig(KPConvSettings):
         cfg.validate()
         return cfg
 
-    def metres(self, voxels: float) -> float:
-        return float(voxels) * float(self.voxel_size)
-
     @property
     def fine_level(self) -> int:
         return 1
-
-    @property
-    def coarse_level(self) -> int:
-        return self.num_layers - 1
 
     def validate(self) -> None:
         if self.num_layers < 3:

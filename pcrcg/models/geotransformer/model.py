@@ -186,10 +186,4 @@ class GeoTransformer(nn.Module):
 
 def build_geotransformer(cfg: Mapping[str, Any] | GeoTransformerConfig, in_dim: int | None = None) -> GeoTransformer:
     """GeoTransformer from the ``model`` config node (``conf/model/geotransformer.yaml``)."""
-    if isinstance(cfg, GeoTransformerConfig):
-        from dataclasses import replace
-
-        c = cfg if in_dim is None else replace(cfg, in_dim=in_dim)
-    else:
-        c = GeoTransformerConfig.from_mapping(cfg, **({"in_dim": in_dim} if in_dim is not None else {}))
-    return GeoTransformer(c)
+    return GeoTransformer(GeoTransformerConfig.from_config(cfg, in_dim))
