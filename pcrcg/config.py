@@ -482,7 +482,7 @@ def _fraction(setting: str, value: Any) -> None:
 TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_true",
                       "ddp_spawn_find_unused_parameters_true", "deepspeed", "fsdp")
 
-# trainer.optim.name (pcrcg.models.module.OptimConfig)
+# trainer.optim.name (pcrcg.models.module.OptimConfig) and train.optimizer of pretrain2d (pcrcg.pretrain2d.core)
 OPTIMIZERS = ("sgd", "adam")
 
 def _optional_int_at_least(low: int):

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import CONF_DIR, color_enabled, geometry_only, needs_training, preflight, validate_run_config
+from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain, without
@@ -171,17 +172,6 @@ def method_label(data: Mapping[str, Any]) -> str:
         return "PCR-CG" if color_enabled(data) else "Predator"
     return {"fpfh": "FPFH", "icp": "ICP", "color_icp": "ColorICP", "sift_dlt": "SIFT-DLT",
             "sift_lifted": "SIFT-lifted"}.get(method, method)
-
-
-def resolve_device(requested: str | None) -> str:
-    if requested and requested != "auto":
-        return requested
-    try:
-        import torch
-
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    except ImportError:  # pragma: no cover
-        return "cpu"
 
 
 def _stage(path: str) -> Callable[[RunContext], Any]:

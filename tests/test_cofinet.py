@@ -227,8 +227,8 @@ def test_evaluation_registers_with_ransac_on_the_models_correspondences():
     (RR 100, a high inlier ratio); the same outputs without them go through the descriptors and fail."""
     from pcrcg.evaluation.metrics import PairRecord, SceneGT, information_matrix
     from pcrcg.evaluation.model import evaluate_model_outputs
-    from pcrcg.models.module import FragmentOutput, PairOutput
-    from pcrcg.registration.pipeline import RegistrationConfig
+    from pcrcg.models.module import PairOutput
+    from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig
 
     rng = np.random.default_rng(5)
     T = rigid(6).numpy()

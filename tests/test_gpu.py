@@ -53,10 +53,15 @@ def test_kpconv_layer_on_the_gpu_matches_the_cpu():
 
 
 def test_every_auto_device_is_the_gpu():
-    from pcrcg.pipeline import resolve_device as runtime_device
-    from pcrcg.pretrain2d.core import _resolve_device as pretrain_device
-    from pcrcg.vision.learned import resolve_device as learned_device
+    import pcrcg.evaluation.run
+    import pcrcg.models.train
+    import pcrcg.pipeline
+    import pcrcg.pretrain2d.core
+    import pcrcg.vision.learned
+    from pcrcg.device import resolve_device
 
-    assert runtime_device("auto") == "cuda" and runtime_device("cpu") == "cpu"
-    assert pretrain_device("auto").type == "cuda"
-    assert learned_device("auto").type == "cuda"
+    # every stage resolves "auto" with the one resolver (strings; callers wanting a torch.device wrap it)
+    assert resolve_device("auto") == "cuda" and resolve_device(None) == "cuda" and resolve_device("cpu") == "cpu"
+    assert torch.device(resolve_device("auto")).type == "cuda"
+    for stage in (pcrcg.pipeline, pcrcg.pretrain2d.core, pcrcg.vision.learned, pcrcg.models.train, pcrcg.evaluation.run):
+        assert stage.resolve_device is resolve_device, stage.__name__

@@ -15,7 +15,7 @@ from pcrcg.models.losses import (
     LossConfig,
     PredatorLoss,
     circle_loss,
-    feature_match_recall,
+    descriptor_hit_rate,
     matchability_labels,
     overlap_labels,
     weighted_bce,
@@ -147,11 +147,11 @@ def test_matchability_and_overlap_labels():
     assert overlap_labels(3, 2, corr, torch.device("cpu")).tolist() == [1, 0, 1, 1, 1]
 
 
-def test_feature_match_recall():
+def test_descriptor_hit_rate():
     coords = torch.tensor([[0.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0]])
     feats = torch.tensor([[0.1, 0.5, 0.9], [0.2, 0.9, 0.9], [0.3, 0.4, 0.5]])
     # rows 0 and 1 have a true positive; row 0's best feature is the positive, row 1's is not
-    assert float(feature_match_recall(coords, feats, 0.5)) == pytest.approx(0.5)
+    assert float(descriptor_hit_rate(coords, feats, 0.5)) == pytest.approx(0.5)
 
 
 def test_predator_loss_on_perfect_and_random_outputs():

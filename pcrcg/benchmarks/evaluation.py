@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-N_POINTS = (5000, 2500, 1000, 500, 250)
+from pcrcg.config import N_POINTS
 
 
 def main(argv: list[str] | None = None) -> None:

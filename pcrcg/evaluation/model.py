@@ -33,8 +33,8 @@ log = logging.getLogger(__name__)
 
 
 def as_fragment(x: Any) -> FragmentOutput:
-    """Any object with ``points``, ``descriptors``, ``overlap``, ``matchability`` (e.g. the model
-    stage's own ``FragmentOutput``) as the registration stage's :class:`FragmentOutput`."""
+    """A :class:`FragmentOutput` as it is, or any mapping or object with ``points``, ``descriptors``,
+    ``overlap``, ``matchability`` as one."""
     if isinstance(x, FragmentOutput):
         return x
     if isinstance(x, Mapping):

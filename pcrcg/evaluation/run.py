@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from pcrcg.cli import strict_json
 from pcrcg.data.layout import BENCHMARKS, Layout, evenly
+from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.evaluation.metrics import (
     FMR_THRESHOLD,
@@ -96,9 +97,7 @@ def configs_from(cfg: Any, device: str | None = None) -> tuple[RegistrationConfi
     if device is not None and str(device) != "auto":
         reg["device"] = str(device)
     if str(reg.get("device", "cpu")) == "auto":
-        import torch
-
-        reg["device"] = "cuda" if torch.cuda.is_available() else "cpu"
+        reg["device"] = resolve_device("auto")
     rcfg = RegistrationConfig.from_dict(reg)
     bcfg = BaselineConfig.from_dict({**reg, "ransac": dataclasses.asdict(rcfg.ransac), "device": rcfg.device})
     return rcfg, bcfg

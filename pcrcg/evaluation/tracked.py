@@ -390,7 +390,7 @@ def evaluate_candidate(tracker: Any, cand: Candidate, *, name: str, root: Path, 
     """Evaluate one run's model on ``root`` as its evaluation stage did and log into the run
     (artifacts and tags first, metrics last). Returns the prefixed metrics."""
     from pcrcg.evaluation.run import evaluate
-    from pcrcg.pipeline import resolve_device
+    from pcrcg.device import resolve_device
     from pcrcg.tracking.git import code_version
 
     cfg = rebuilt_config(cand.config, root)

@@ -113,8 +113,10 @@ def precision_recall(prob: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Te
     return p, r
 
 
-def feature_match_recall(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float) -> torch.Tensor:
-    """Fraction of rows with a true positive whose feature nearest neighbour is a positive."""
+def descriptor_hit_rate(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float) -> torch.Tensor:
+    """Fraction of rows with a true positive whose feature nearest neighbour is a positive (a training
+    statistic over the sampled rows, logged as ``recall``; not the protocol's feature-match recall,
+    :func:`pcrcg.evaluation.metrics.feature_match_recall`)."""
     has_pos = (coords_dist < pos_radius).any(-1)
     nn_idx = feats_dist.argmin(-1, keepdim=True)
     hit = torch.gather(coords_dist, -1, nn_idx).squeeze(-1) < pos_radius
@@ -220,7 +222,7 @@ class PredatorLoss(torch.nn.Module):
             feats_dist = torch.sqrt(torch.clamp(fd2, min=1e-12))
             stats["circle_loss"] = circle_loss(coords_dist, feats_dist, pos_r, self.radius("safe_radius"),
                                                c.pos_margin, c.neg_margin, c.pos_optimal, c.neg_optimal, c.log_scale)
-            stats["recall"] = feature_match_recall(coords_dist, feats_dist.detach(), pos_r)
+            stats["recall"] = descriptor_hit_rate(coords_dist, feats_dist.detach(), pos_r)
         else:
             stats["circle_loss"] = descriptors.sum() * 0.0
             stats["recall"] = torch.tensor(0.0, device=dev)

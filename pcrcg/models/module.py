@@ -37,6 +37,7 @@ from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.fields import known_fields
 from pcrcg.models.losses import LossConfig, PredatorLoss
 from pcrcg.models.predator import build_predator
+from pcrcg.registration.pipeline import FragmentOutput
 
 STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
              "overlap_recall", "matchability_precision", "matchability_recall",
@@ -65,24 +66,6 @@ class OptimConfig:
         if cfg.name not in OPTIMIZERS:
             raise ConfigError("trainer.optim.name", cfg.name, " | ".join(OPTIMIZERS))
         return cfg
-
-
-@dataclass
-class FragmentOutput:
-    """Network outputs for one fragment, in its own frame (the registration stage's input).
-
-    points (N, 3) float32, descriptors (N, D) float32 (unit norm), overlap (N,) float32 and
-    matchability (N,) float32 in [0, 1].
-    """
-
-    points: np.ndarray
-    descriptors: np.ndarray
-    overlap: np.ndarray
-    matchability: np.ndarray
-
-    def as_dict(self) -> dict[str, np.ndarray]:
-        return {"points": self.points, "descriptors": self.descriptors, "overlap": self.overlap,
-                "matchability": self.matchability}
 
 
 @dataclass

@@ -44,10 +44,12 @@ from lightning.pytorch.loggers import CSVLogger, Logger
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.data.layout import evenly
+from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError, one_line
 from pcrcg.models.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
-from pcrcg.models.module import FragmentOutput, PairOutput, PCRCGModule, build_lifter_from
+from pcrcg.models.module import PairOutput, PCRCGModule, build_lifter_from
+from pcrcg.registration.pipeline import FragmentOutput
 
 LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
 
@@ -370,7 +372,7 @@ def load_module(checkpoint: str | Path, device: str | torch.device | None = None
                               f"{one_line(e, 160)})") from None
     _check_state_dict(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
-    dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(resolve_device(device))  # None: auto
     return module.to(dev).eval()
 
 

@@ -32,7 +32,9 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import torch
 
+from pcrcg.config import OPTIMIZERS
 from pcrcg.data.layout import Layout
+from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.models.fields import lookup
 from pcrcg.pretrain2d.frames import FrameCache, FrameSequence, list_sequences, load_sequence
@@ -52,7 +54,6 @@ from pcrcg.vision.pretrain import (
 
 EXPERIMENT = "pretrain2d"
 HASH_EXCLUDE = ("hydra", "logger", "paths", "runtime", "out", "force", "data.workers", "train.num_threads")
-OPTIMIZERS = ("adam", "sgd")
 SCHEDULES = ("cosine", "constant")
 HOLDOUT = "holdout"
 
@@ -153,7 +154,7 @@ def check_settings(cfg: Mapping[str, Any]) -> Settings:
         raise ConfigError("train.splits", splits, "a non-empty list of split names (train, val, test)")
     opt = lookup(cfg, "train.optimizer")
     if opt not in OPTIMIZERS:
-        raise ConfigError("train.optimizer", opt, " | ".join(OPTIMIZERS))
+        raise ConfigError("train.optimizer", opt, " | ".join(sorted(OPTIMIZERS)))  # "adam | sgd", as this message always read
     sched = lookup(cfg, "train.lr_schedule")
     if sched not in SCHEDULES:
         raise ConfigError("train.lr_schedule", sched, " | ".join(SCHEDULES))
@@ -389,12 +390,6 @@ def default_checkpoint(cfg: Mapping[str, Any], base: Path) -> Path:
     return root / "pretrain2d" / tag / f"pri3d_{lookup(cfg, 'encoder2d.arch', 'resnet18')}.pth"
 
 
-def _resolve_device(requested: Any) -> torch.device:
-    if requested in (None, "", "auto"):
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(str(requested))
-
-
 def _reusable(path: Path, h: str) -> dict[str, Any] | None:
     if not path.is_file():
         return None
@@ -438,7 +433,7 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
     if s.num_threads:
         torch.set_num_threads(s.num_threads)
     show = bool(lookup(data, "runtime.progress", True)) if progress is None else progress
-    device = _resolve_device(lookup(data, "runtime.device"))
+    device = torch.device(resolve_device(lookup(data, "runtime.device")))
 
     # ---- data
     root = _data_root(data, base, log)

@@ -26,10 +26,12 @@ DEFAULT_N_POINTS = (5000, 2500, 1000, 500, 250)
 
 @dataclass
 class FragmentOutput:
-    """What the network gives for one fragment of a pair.
+    """What the network gives for one fragment of a pair: the model stage's output and the
+    registration stage's input (:meth:`pcrcg.models.module.PCRCGModule.predict_pair`).
 
-    points (N, 3) float32 in the fragment's own frame; descriptors (N, D) float32;
-    overlap (N,) and matchability (N,) scores in [0, 1].
+    points (N, 3) float32 in the fragment's own frame; descriptors (N, D) float32 (unit norm from
+    the models); overlap (N,) and matchability (N,) float32 scores in [0, 1]. Arrays and tensors
+    given are made float32 numpy arrays and their shapes checked.
     """
 
     points: np.ndarray
@@ -53,6 +55,10 @@ class FragmentOutput:
     def scores(self) -> np.ndarray:
         """(N,) sampling scores: overlap x matchability."""
         return self.overlap * self.matchability
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {"points": self.points, "descriptors": self.descriptors, "overlap": self.overlap,
+                "matchability": self.matchability}
 
 
 def _np(x, dtype) -> np.ndarray:

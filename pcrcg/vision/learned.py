@@ -17,8 +17,8 @@ Public API
 * :func:`load_disk` ``(path, device) -> DISK`` and :func:`load_lightglue` ``(path, device) -> LightGlue``:
   strict loads in eval mode, memoised per (file, device), kept outside any ``nn.Module`` tree (so
   never in a checkpoint and never trained).
-* :func:`resolve_device` ``("auto"|"cpu"|"cuda[:N]") -> torch.device``: ``auto`` is CUDA when torch
-  has it, except inside a DataLoader worker process (CUDA does not survive the fork).
+* devices: ``"auto"`` (the default) is :func:`pcrcg.device.resolve_device`'s: CUDA when torch has it,
+  except inside a DataLoader worker process (CUDA does not survive the fork).
 * :func:`disk_features` ``(images [(H, W, 3) uint8], cfg) -> [ImageFeatures]``: images resized to
   ``cfg.image_size``, batched per size, DISK's strongest ``max_keypoints`` heatmap maxima
   (``nms_window``), 128-d L2-normalised descriptors.
@@ -41,6 +41,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.tracking.hashing import file_digest
 from pcrcg.vision.keypoints import ImageFeatures, Matches, check_image, sift_projection, verify_fundamental
@@ -138,16 +139,6 @@ def _strict(model: Any, state: dict[str, Any], path: Path, what: str, allowed_mi
                               f"unexpected {unexpected[:4]}{'...' if len(unexpected) > 4 else ''}")
 
 
-def resolve_device(name: str = "auto") -> Any:
-    import torch
-
-    if name == "auto":
-        from torch.utils.data import get_worker_info
-
-        return torch.device("cuda" if torch.cuda.is_available() and get_worker_info() is None else "cpu")
-    return torch.device(name)
-
-
 def load_disk(path: str | Path, device: Any = "cpu") -> Any:
     """kornia's DISK with ``torch.load(path)["extractor"]`` loaded strictly, eval mode, on ``device``."""
     import torch
@@ -239,7 +230,7 @@ def disk_features(images: Sequence[np.ndarray], cfg: Any) -> list[Any]:
     import torch
 
     disk_path, _ = weight_files(cfg)
-    device = resolve_device(getattr(cfg, "device", "auto"))
+    device = torch.device(resolve_device(getattr(cfg, "device", "auto")))
     model = load_disk(disk_path, device)
     resized = [_resize_rgb(im, cfg.image_size) for im in images]
     out: list[Any] = [None] * len(images)
@@ -267,7 +258,7 @@ def lightglue_matches(fa: Any, fb: Any, cfg: Any) -> Any:
     if fa.descriptors is None or fb.descriptors is None or len(fa) < need or len(fb) < need:
         return Matches.empty()
     _, lg_path = weight_files(cfg)
-    device = resolve_device(getattr(cfg, "device", "auto"))
+    device = torch.device(resolve_device(getattr(cfg, "device", "auto")))
     model = load_lightglue(lg_path, device, cfg.filter_threshold)
 
     def side(f: Any) -> dict[str, Any]:
@@ -310,7 +301,7 @@ def dense_disk_maps(images: Sequence[np.ndarray], dim: int = 32, image_size: Seq
     if not 1 <= int(dim) <= DESC_DIM:
         raise ConfigError("features.dim", dim, f"1..{DESC_DIM} for features=disk")
     path = _configured(weights, DISK_FILE, "features.weights")
-    dev = resolve_device("auto") if device is None else torch.device(device)
+    dev = torch.device(resolve_device(device))  # None: auto
     model = load_disk(path, dev)
     proj = None if int(dim) == DESC_DIM else torch.from_numpy(sift_projection(int(dim), seed, "disk")).to(dev)
     resized = [_resize_rgb(im, image_size)[0] for im in images]
