@@ -38,6 +38,8 @@ CLASSICAL_METHODS = METHODS[1:]
 ICP_METHODS = ("icp", "color_icp")
 VIEWS = (1, 2, 3)
 ICP_INIT = ("identity", "learned")
+# the sizes N of Predator's protocol, largest first: the default of eval.n_points and of
+# pcrcg.registration.RegistrationConfig.n_points (the one home of this tuple)
 N_POINTS = (5000, 2500, 1000, 500, 250)
 MAX_WINDOW = 101
 

@@ -39,7 +39,6 @@ from pcrcg.registration.baselines import (
 )
 from pcrcg.registration.matching import match_descriptors
 from pcrcg.registration.pipeline import (
-    DEFAULT_N_POINTS,
     FeatureRegistration,
     FragmentOutput,
     RegistrationConfig,
@@ -61,7 +60,7 @@ __all__ = [
     "METHODS", "BaselineConfig", "BaselineResult", "ColorIcpConfig", "FpfhConfig", "IcpConfig", "SiftDltConfig",
     "SiftLiftedConfig", "lift_pixels", "register_color_icp", "register_fpfh", "register_icp", "register_pair",
     "register_sift_dlt", "register_sift_lifted",
-    "match_descriptors", "DEFAULT_N_POINTS", "FeatureRegistration", "FragmentOutput", "RegistrationConfig",
+    "match_descriptors", "FeatureRegistration", "FragmentOutput", "RegistrationConfig",
     "pair_seed", "register_features", "RansacConfig", "RansacResult", "kabsch", "kabsch_numpy", "ransac",
     "ransac_feature_matching_open3d", "ransac_open3d", "SAMPLING_MODES", "sample_indices",
 ]

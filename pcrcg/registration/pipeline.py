@@ -15,13 +15,13 @@ from typing import Mapping
 import numpy as np
 import torch
 
+from pcrcg.config import N_POINTS
 from pcrcg.errors import ConfigError
 from pcrcg.registration.matching import match_descriptors
 from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d, torch_threads
 from pcrcg.registration.sampling import FEWER_POINTS, SAMPLING_MODES, sample_indices
 
 BACKENDS = ("torch", "open3d")
-DEFAULT_N_POINTS = (5000, 2500, 1000, 500, 250)
 
 
 @dataclass
@@ -82,7 +82,7 @@ class RegistrationConfig:
     mutual: bool = False
     backend: str = "torch"
     device: str = "cpu"
-    n_points: tuple[int, ...] = DEFAULT_N_POINTS
+    n_points: tuple[int, ...] = N_POINTS
     ransac: RansacConfig = field(default_factory=RansacConfig)
 
     def __post_init__(self) -> None:
