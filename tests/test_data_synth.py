@@ -11,6 +11,7 @@ from pcrcg.data.synth.camera import ScanConfig, ScanPath, camera_path
 from pcrcg.data.synth.render import RoomRenderer, SensorModel
 from pcrcg.data.synth.scene import Panel, Room, make_room
 from pcrcg.data.synth.textures import FAMILIES, Texture, image_texture, random_texture
+from pcrcg.evaluation.metrics import information_matrix
 from pcrcg.geometry import invert, look_at, make_transform, random_rotation, skew, transform_points
 
 K = np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]])
@@ -204,6 +205,15 @@ def test_info_matrix_formula():
     g = rng.uniform(size=(8000, 3))
     M = info_matrix(g, g, np.eye(4))
     assert M[0, 0] == 5000
+
+
+def test_info_matrix_agrees_with_the_evaluations_independent_one():
+    """The data code's information matrix (G^T G summed) and the evaluation's (closed form from the
+    point sums) are two implementations on purpose (pcrcg.data.checks checks one with the other);
+    they give the same matrix."""
+    p = np.random.default_rng(3).uniform(-2, 2, size=(500, 3)) + [0.5, -1.0, 3.0]
+    np.testing.assert_allclose(info_from_points(p), information_matrix(p), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(info_from_points(np.zeros((0, 3))), information_matrix(np.zeros((0, 3))))
 
 
 def test_info_matrix_quadratic_form_is_the_protocol_error():

@@ -76,7 +76,14 @@ def info_matrix(
 
 
 def info_from_points(p: np.ndarray) -> np.ndarray:
-    """sum_p G^T G with G = [I | -[p]x] for points p (K, 3)."""
+    """sum_p G^T G with G = [I | -[p]x] for points p (K, 3).
+
+    The data code's information matrix (what ``gt.info`` is written with). It is deliberately not
+    :func:`pcrcg.evaluation.metrics.information_matrix`, which computes the same matrix in closed form
+    from the point sums: that one is the independent implementation :mod:`pcrcg.data.checks`
+    re-derives ``gt.info`` with (issue 17), so the two must stay two; ``tests/test_data_synth.py``
+    holds them equal.
+    """
     S = skew(p)  # (K, 3, 3)
     G = np.concatenate([np.broadcast_to(np.eye(3), S.shape), -S], axis=2)  # (K, 3, 6)
     return np.einsum("kai,kaj->ij", G, G)
