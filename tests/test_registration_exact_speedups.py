@@ -1,8 +1,9 @@
 """The evaluation's shortcuts give what the reference path gives, bit for bit.
 
 * descriptor matching with row identifiers (each distinct sampled point matched once) vs plain;
-* RANSAC's pruned overlap score (``RansacConfig(prune=True)``: repeated points scored once,
-  hopeless hypotheses abandoned) vs scoring every point of every hypothesis;
+* RANSAC's shortcuts to the overlap score (``RansacConfig(prune=True)``: the voxel grid that decides most
+  points without the KD-tree, repeated points scored once, hopeless hypotheses abandoned; the chunked
+  scorer where the grid would be too large) vs scoring every point of every hypothesis;
 * the pipeline end to end (sampling with replacement, both RANSAC budgets, mutual or not).
 """
 
@@ -15,7 +16,8 @@ import torch
 from pcrcg.geometry import make_transform, random_rotation, transform_points
 from pcrcg.registration import FragmentOutput, RegistrationConfig, register_features
 from pcrcg.registration.matching import first_occurrences, match_descriptors
-from pcrcg.registration.ransac import RansacConfig, _OverlapScore, _PrunedOverlapScore, ransac
+from pcrcg.registration.ransac import (RansacConfig, _GridOverlapScore, _OverlapScore, _PrunedOverlapScore,
+                                      ransac)
 from pcrcg.registration.synthetic import box_room
 
 
@@ -120,9 +122,51 @@ def test_pipeline_results_do_not_change(mutual, fewer_points, monkeypatch):
         assert (r0.ransac.iterations, r0.ransac.n_checked) == (r1.ransac.iterations, r1.ransac.n_checked)
 
 
-def test_pruned_score_only_from_prune_min_points_with_the_same_results(monkeypatch):
-    """The pruned scorer runs for sources of at least ``prune_min_points`` points, the reference below;
-    the results are the same either way."""
+def test_grid_cell_classes_are_exact():
+    """Every point of an *in* cell has a target point nearer than the threshold, no point of an *out*
+    cell has one, and both classes decide a real share of the points."""
+    rng = np.random.default_rng(3)
+    tgt = rng.uniform(0, 1.0, size=(3000, 3)) * [2.0, 1.5, 0.3]  # a slab, ~7 cm apart like the sampled N
+    src = tgt[rng.integers(0, len(tgt), 20000)] + rng.normal(scale=0.02, size=(20000, 3))
+    src[:2000] = rng.uniform(-1.0, 3.0, size=(2000, 3))  # far off too, outside the grid included
+    d = 0.05
+    grid = _GridOverlapScore(src, tgt, d, torch.float32, torch.device("cpu"))
+    states = grid._states(torch.eye(3)[None], torch.zeros(1, 3))[0].numpy()
+    true, _ = grid.tree.query(grid.src.double().numpy(), k=1)
+    assert (true[states == 2] < d).all() and (true[states == 0] >= d).all()
+    share = np.bincount(states, minlength=3) / len(states)
+    assert share[0] > 0.05 and share[2] > 0.3, share
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grid_overlap_score_keeps_every_count_that_can_win(seed):
+    rng, src, tgt, _ = _clouds(seed)
+    s = src[rng.integers(0, len(src), 2500)]  # with repeats
+    R = torch.as_tensor(np.stack([random_rotation(rng, 0.3 if k % 2 else 0.02) for k in range(40)]), dtype=torch.float32)
+    t = torch.as_tensor(rng.normal(scale=0.05, size=(40, 3)), dtype=torch.float32)
+    R[7], t[7] = torch.eye(3), torch.zeros(3)  # the right one (source and target are one cloud)
+    R[9], t[9] = R[7], t[7]  # a tie for the best
+    tgt = s + np.random.default_rng(1).normal(scale=0.01, size=s.shape)
+    full = _OverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))
+    grid = _GridOverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))
+    c_full, e_full = full(R, t)
+    best = int(c_full.max())
+    for floor in (0, best // 2, best, best + 1):
+        c, e = grid(R, t, floor)
+        kept = c >= 0
+        if floor > best:  # nothing can beat the floor
+            assert not kept.any()
+            continue
+        assert int(c.max()) == best and torch.equal(c[kept], c_full[kept].to(c.dtype))
+        top = c == best
+        assert int(top.sum()) >= 2 and torch.allclose(e[top], e_full[top].to(e.dtype), rtol=1e-9)
+        assert bool((c_full[~kept] < max(floor, best)).all())  # every dropped one is below a reached count
+    assert int((grid(R, t, 0)[0] < 0).sum()) > 0  # hopeless hypotheses are dropped
+
+
+def test_overlap_scorer_choice_with_the_same_results(monkeypatch):
+    """The grid scorer by default; where the grid would be too large, the chunked scorer from
+    ``prune_min_points`` source points and the reference below; the results are the same every way."""
     used = []
 
     def recording(init, name):
@@ -131,20 +175,25 @@ def test_pruned_score_only_from_prune_min_points_with_the_same_results(monkeypat
             init(self, *args, **kwargs)
         return wrapped
 
-    for cls in (_OverlapScore, _PrunedOverlapScore):
+    for cls in (_OverlapScore, _PrunedOverlapScore, _GridOverlapScore):
         monkeypatch.setattr(cls, "__init__", recording(cls.__init__, cls.__name__))
     _, src, tgt, corr = _clouds(6, n=1200, inlier_ratio=0.2)
     kw = dict(max_validation=500, confidence=1.0, max_iterations=5000)
     results = {}
-    for label, cfg in (("default", RansacConfig(**kw)), ("forced", RansacConfig(prune_min_points=1000, **kw)),
-                       ("off", RansacConfig(prune=False, **kw))):
+    cases = (("grid", RansacConfig(**kw), _GridOverlapScore.MAX_CELLS),
+             ("small", RansacConfig(**kw), 1), ("chunked", RansacConfig(prune_min_points=1000, **kw), 1),
+             ("off", RansacConfig(prune=False, **kw), _GridOverlapScore.MAX_CELLS))
+    for label, cfg, cells in cases:
+        monkeypatch.setattr(_GridOverlapScore, "MAX_CELLS", cells)
         used.clear()
         results[label] = (ransac(src, tgt, corr, cfg, seed=3), set(used))
     assert RansacConfig().prune_min_points == 2000
-    assert results["default"][1] == {"_OverlapScore"}  # 1200 < 2000 points
-    assert results["forced"][1] == {"_PrunedOverlapScore"}
+    assert results["grid"][1] == {"_GridOverlapScore", "_PrunedOverlapScore"}  # the grid builds on the chunked one
+    assert results["small"][1] == {"_OverlapScore"}  # 1200 < 2000 points
+    assert results["chunked"][1] == {"_PrunedOverlapScore"}
     assert results["off"][1] == {"_OverlapScore"}
-    for label in ("default", "forced"):
-        r, ref = results[label][0], results["off"][0]
+    ref = results["off"][0]
+    for label in ("grid", "small", "chunked"):
+        r = results[label][0]
         assert np.array_equal(r.transform, ref.transform)
         assert (r.iterations, r.n_checked, r.n_inliers) == (ref.iterations, ref.n_checked, ref.n_inliers)

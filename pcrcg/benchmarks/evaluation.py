@@ -9,8 +9,9 @@ model's outputs for ``--pairs`` pairs of each test benchmark, with the run's def
 
 * **before**: every sampled row matched (no ``src_ids``/``tgt_ids``) and ``RansacConfig(prune=False)``
   (every point of every validated hypothesis scored);
-* **after**: the defaults (each distinct sampled point matched once; the pruned overlap score at
-  N >= ``RansacConfig.prune_min_points``, the reference scorer below).
+* **after**: the defaults (each distinct sampled point matched once; the voxel-grid overlap scorer,
+  ``pcrcg.registration.ransac._GridOverlapScore``, which decides most points without the KD-tree and
+  drops hypotheses that can no longer win).
 
 It also says whether both gave the same transforms, correspondences and RANSAC counts on every pair.
 """
