@@ -518,21 +518,13 @@ def _check_inputs(ctx: RunContext) -> None:
 
 
 def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dict[str, str]:
-    from pcrcg.tracking.git import git_info
-    from pcrcg.tracking.runs import TAG_CODE, TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE
+    from pcrcg.tracking.runs import identity_tags
 
-    sha, dirty = git_info()
     tags = {
-        TAG_EXPERIMENT: str(cfg.experiment_name),
-        TAG_HASH: h,
-        TAG_GIT: sha,
-        "git_dirty": str(dirty).lower(),
-        TAG_CODE: code_version(),
-        TAG_PROFILE: str(OmegaConf.select(cfg, "profile.name", default="?")),
+        **identity_tags(str(cfg.experiment_name), h, str(OmegaConf.select(cfg, "profile.name", default="?"))),
         "method": str(cfg.method),
         "label": method_label(data),
         "overrides": " ".join(job.overrides),
-        "mlflow.source.git.commit": sha,
     }
     if job.sweep_dir:
         tags["sweep_dir"] = job.sweep_dir

@@ -415,6 +415,9 @@ def test_cli_prints_the_result_as_its_last_line_and_logs_to_mlflow(rgbd_root, tm
 
     run = MlflowClient(env["MLFLOW_TRACKING_URI"]).get_run(res["run_id"])
     assert run.info.status == "FINISHED" and run.data.tags["checkpoint"] == str(out)
+    from pcrcg.tracking.git import code_version
+
+    assert run.data.tags["code_version"] == code_version() and run.data.tags["profile"] == "tiny"
     assert "match_acc_pretrained" in run.data.metrics and run.data.params["train.steps"] == "2"
     hist = MlflowClient(env["MLFLOW_TRACKING_URI"]).get_metric_history(res["run_id"], "train/loss")
     assert len(hist) == 2

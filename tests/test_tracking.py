@@ -97,6 +97,22 @@ def test_git_info_reports_the_checkout():
     assert dirty == bool(status.strip())
 
 
+def test_every_kind_of_run_gets_the_same_identity_tags(monkeypatch):
+    """One function builds the tags a run (pcrcg.pipeline) and a 2D pretraining (pcrcg.pretrain2d)
+    carry; the code version is among them."""
+    import pcrcg.tracking.runs as runs
+    from pcrcg.tracking.git import code_version
+
+    tags = runs.identity_tags("views", "0123abcd0123abcd", "cpu")
+    sha, dirty = git_info()
+    assert tags == {"experiment": "views", "config_hash": "0123abcd0123abcd", "git_sha": sha,
+                    "git_dirty": str(dirty).lower(), "code_version": code_version(), "profile": "cpu",
+                    "mlflow.source.git.commit": sha}
+    monkeypatch.setattr(runs, "git_info", lambda: ("e" * 40, True))
+    assert runs.identity_tags("x", "h", "tiny")["git_dirty"] == "true"
+    assert runs.identity_tags("x", "h", "tiny")["mlflow.source.git.commit"] == "e" * 40
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     from pcrcg.tracking.store import ensure_store
@@ -242,10 +258,12 @@ def test_the_code_version_digests_the_code_that_computes_results(tmp_path):
 def _identity_job(tmp_path, monkeypatch, code: str, *overrides: str):
     """A classical run with the fake stages (tests/test_run_support.py) as if made by code version ``code``."""
     import pcrcg.pipeline as pipeline
+    import pcrcg.tracking.runs as runs
     from pcrcg.config import load_run_config
     from test_run_support import FAKES
 
-    monkeypatch.setattr(pipeline, "code_version", lambda: code)
+    monkeypatch.setattr(pipeline, "code_version", lambda: code)  # the skip rule's
+    monkeypatch.setattr(runs, "code_version", lambda: code)  # the run's tag (identity_tags)
     cfg = load_run_config(["profile=tiny", "method=fpfh", "experiment_name=identity", "runtime.report_on_end=false",
                            *FAKES, *overrides])
     n = len(list(tmp_path.glob("out-*")))

@@ -598,19 +598,15 @@ def _train_and_evaluate(model: ResUNet, train_seqs, eval_seqs, pairs, items, s: 
 def _start_tracking(data: Mapping[str, Any], h: str, base: Path, out: Path, log) -> tuple[Any, str | None]:
     if lookup(data, "logger.name", "none") != "mlflow":
         return None, None
-    from pcrcg.tracking.git import git_info
     from pcrcg.tracking.hashing import flatten
-    from pcrcg.tracking.runs import TAG_EXPERIMENT, TAG_GIT, TAG_HASH, TAG_PROFILE, RunTracker
+    from pcrcg.tracking.runs import RunTracker, identity_tags
     from pcrcg.tracking.store import resolve_tracking_uri
 
     uri = resolve_tracking_uri(lookup(data, "logger.tracking_uri"), base)
     tracker = RunTracker(uri, EXPERIMENT)
-    sha, dirty = git_info()
     profile = str(lookup(data, "profile.name", "?"))
     arch = str(lookup(data, "encoder2d.arch", "?"))
-    run_id = tracker.start(f"pri3d_{arch}-{profile}", {
-        TAG_EXPERIMENT: EXPERIMENT, TAG_HASH: h, TAG_GIT: sha, "git_dirty": str(dirty).lower(), TAG_PROFILE: profile,
-        "checkpoint": str(out), "mlflow.source.git.commit": sha})
+    run_id = tracker.start(f"pri3d_{arch}-{profile}", {**identity_tags(EXPERIMENT, h, profile), "checkpoint": str(out)})
     params = {k: v for k, v in flatten(data).items() if not k.startswith(("hydra.", "profile."))}
     tracker.log_params(run_id, params)
     log(f"[pretrain2d] MLflow run {run_id} in {uri} (experiment {EXPERIMENT})")

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+from pcrcg.tracking.git import code_version, git_info
 from pcrcg.tracking.store import client, ensure_experiment, ensure_store
 
 # MLflow's per-request limits (log_batch) and its longest param value
@@ -54,6 +55,16 @@ def process_start(pid: int) -> str | None:
         return None
     # the command name (field 2) may hold spaces and parentheses: count fields after the last ')'
     return stat.rsplit(")", 1)[-1].split()[19]
+
+
+def identity_tags(experiment: str, config_hash: str, profile: str) -> dict[str, str]:
+    """The tags that say what a tracked run is and which code made it, for every kind of run (a run of
+    :mod:`pcrcg.pipeline`, a 2D pretraining): its experiment, config hash and profile, the git commit
+    (also as MLflow's own ``mlflow.source.git.commit``), whether the checkout was dirty, and the
+    :func:`~pcrcg.tracking.git.code_version`."""
+    sha, dirty = git_info()
+    return {TAG_EXPERIMENT: experiment, TAG_HASH: config_hash, TAG_GIT: sha, "git_dirty": str(dirty).lower(),
+            TAG_CODE: code_version(), TAG_PROFILE: profile, "mlflow.source.git.commit": sha}
 
 
 def owner_tags() -> dict[str, str]:
