@@ -572,7 +572,7 @@ def _write_outputs(ctx: RunContext, metrics: Mapping[str, float], result: EvalOu
     (ctx.out_dir / "metrics.json").write_text(strict_json(  # NaN (no registered pair: RRE) as null
         {"config_hash": h, "metrics": metrics, "protocol": result.protocol}, indent=1))
     try:
-        from pcrcg.report.plots import plot_run_recall
+        from pcrcg.plots.recall import plot_run_recall
 
         plot_run_recall(metrics, ctx.out_dir / "plots" / "recall_vs_points.png",
                         title=f"{ctx.cfg.experiment_name}: {run_name(ctx.job.overrides)}")

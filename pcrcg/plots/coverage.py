@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pcrcg.geometry import invert, look_at, project, transform_points
+from pcrcg.plots import no_ticks, pyplot, save_figure
 
 
 def coverage_masks(sample: Any, fragment: str = "tgt", projection: str = "implicit", window_size: int = 11,
@@ -60,11 +61,7 @@ def overview_camera(points: np.ndarray) -> np.ndarray:
 def draw(points: np.ndarray, colors: np.ndarray | None, masks: dict[int, np.ndarray], out: str | Path,
          title: str = "", point_size: float = 2.0, size: tuple[int, int] = (480, 360)) -> Path:
     """Render one panel per entry of ``masks`` (splatted points, far to near) into a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     W, H = size
     pose = overview_camera(points)
     K = np.array([[0.8 * W, 0, W / 2], [0, 0.8 * W, H / 2], [0, 0, 1.0]])
@@ -85,18 +82,13 @@ def draw(points: np.ndarray, colors: np.ndarray | None, masks: dict[int, np.ndar
         ax.set_xlim(0, W)
         ax.set_ylim(H, 0)
         ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
+        no_ticks(ax)
         ax.set_facecolor("#e8e8e8")
         ax.set_title(f"{k} view{'s' if k > 1 else ''}: {100 * cov.mean():.1f}% covered", fontsize=10)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

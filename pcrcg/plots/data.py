@@ -14,6 +14,7 @@ import numpy as np
 
 from pcrcg.data.layout import Layout, frame_paths, read_cloud, read_color, read_depth, read_fragment_info
 from pcrcg.geometry import transform_points
+from pcrcg.plots import no_ticks, pyplot, save_figure
 
 
 def splat(points: np.ndarray, colors: np.ndarray, K: np.ndarray, size: tuple[int, int], radius: int = 1) -> np.ndarray:
@@ -41,16 +42,11 @@ def top_view(points: np.ndarray, colors: np.ndarray, ax) -> None:
     order = np.argsort(-points[:, 1])  # high points (small y) drawn last
     ax.scatter(points[order, 0], points[order, 2], c=np.clip(colors[order], 0, 1), s=0.5, linewidths=0)
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    no_ticks(ax)
 
 
 def dataset_figure(root: str | Path, scene: str | None = None, out: str | Path = "dataset.png") -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     layout = Layout(root)
     if scene is None:
         scene = layout.scenes("test")[0]
@@ -97,19 +93,13 @@ def dataset_figure(root: str | Path, scene: str | None = None, out: str | Path =
             ax.scatter(pi[:, a], pi[:, b], s=0.3, c="tab:orange", linewidths=0, alpha=0.6)
             ax.scatter(pj_in_i[:, a], pj_in_i[:, b], s=0.3, c="tab:blue", linewidths=0, alpha=0.6)
             ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
+            no_ticks(ax)
         ax_a.set_title(f"{bench} pair {r.i}-{r.j}, overlap {ov.get((r.i, r.j), float('nan')):.2f} (top)")
         ax_b.set_title("same pair, front")
     for ax in axes[0].tolist() + [axes[1, 0], axes[1, 2]]:
-        ax.set_xticks([])
-        ax.set_yticks([])
+        no_ticks(ax)
     fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, dpi=80)
 
 
 def main() -> None:

@@ -1,21 +1,23 @@
-"""Figures: recall against the number of sampled points (per run and per table), color coverage."""
+"""Figures of the results: recall against the number of sampled points (per run, written by
+:mod:`pcrcg.pipeline`; per table, by :mod:`pcrcg.report`) and a table's color coverage."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
-from pcrcg.report.tables import FilledTable
+from pcrcg.plots import pyplot, save_figure
+
+if TYPE_CHECKING:  # not at run time: importing pcrcg.report.tables runs pcrcg.report, which imports this module
+    from pcrcg.report.tables import FilledTable
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+def _n_axis(ax, sizes: list[int]) -> None:
+    """The x axis of a recall plot: the sizes N evenly spaced (like a log axis, without its cost)."""
+    ax.set_xticks(range(len(sizes)))
+    ax.set_xticklabels([str(n) for n in sizes])
+    ax.set_xlabel("# sampled points")
 
 
 _KEY = re.compile(r"^(?P<bench>[^/]+)/(?P<metric>rr|fmr|ir)_(?P<n>\d+)$")
@@ -30,28 +32,23 @@ def plot_run_recall(metrics: Mapping[str, float], path: Path, title: str = "") -
             series.setdefault(m["metric"], {}).setdefault(m["bench"], []).append((int(m["n"]), float(v)))
     if not series:
         return None
-    plt = _plt()
+    plt = pyplot()
     names = [m for m in ("rr", "fmr", "ir") if m in series]
     sizes = sorted({n for m in names for pts in series[m].values() for n, _ in pts})
-    pos = {n: i for i, n in enumerate(sizes)}  # evenly spaced like a log axis, without its cost
+    pos = {n: i for i, n in enumerate(sizes)}  # where _n_axis puts each N
     fig, axes = plt.subplots(1, len(names), figsize=(4 * len(names), 3.2), squeeze=False)
     for ax, name in zip(axes[0], names):
         for bench, pts in sorted(series[name].items()):
             pts.sort()
             ax.plot([pos[p[0]] for p in pts], [p[1] for p in pts], marker="o", label=bench)
-        ax.set_xticks(range(len(sizes)))
-        ax.set_xticklabels([str(n) for n in sizes])
-        ax.set_xlabel("# sampled points")
+        _n_axis(ax, sizes)
         ax.set_ylabel(f"{name.upper()} (%)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=9)
     fig.subplots_adjust(left=0.08, right=0.98, bottom=0.17, top=0.86, wspace=0.3)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
@@ -62,7 +59,7 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
             panels.setdefault((c.col.metric, c.col.benchmark), []).append(c)
     if not panels:
         return None
-    plt = _plt()
+    plt = pyplot()
     keys = list(panels)
     sizes = sorted({c.col.n_points for cells in panels.values() for c in cells})
     pos = {n: i for i, n in enumerate(sizes)}
@@ -82,9 +79,7 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
             if paper:
                 ax.plot([pos[c.col.n_points] for c in paper], [c.paper for c in paper], color=color,
                         linestyle="--", marker="x", alpha=0.7, label=f"{row.text} (paper)")
-        ax.set_xticks(range(len(sizes)))
-        ax.set_xticklabels([str(n) for n in sizes])
-        ax.set_xlabel("# sampled points")
+        _n_axis(ax, sizes)
         ax.set_ylabel(f"{key[0]} (%)")
         ax.set_title(key[1], fontsize=10)
         ax.grid(alpha=0.3)
@@ -95,17 +90,14 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
     fig.suptitle(table.spec.title, fontsize=9)
     fig.subplots_adjust(left=0.7 / fig.get_figwidth(), right=1 - legend_w - 0.01, bottom=0.15, top=0.85,
                         wspace=0.35)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_coverage(table: FilledTable, path: Path) -> Path | None:
     """Color coverage per row (ours): the fraction of points that received a 2D feature."""
     if not table.coverage:
         return None
-    plt = _plt()
+    plt = pyplot()
     labels = list(table.coverage)
     means = [table.coverage[k][0] for k in labels]
     stds = [table.coverage[k][1] for k in labels]
@@ -118,7 +110,4 @@ def plot_coverage(table: FilledTable, path: Path) -> Path | None:
     ax.set_title(f"{table.spec.title}: color coverage", fontsize=9)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)

@@ -24,10 +24,10 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.errors import ConfigError
+from pcrcg.plots.recall import plot_coverage, plot_table_recall
 from pcrcg.tracking.git import DEFAULT_IDENTITY, IDENTITIES, same_code
 from pcrcg.report.orderings import StatsSettings, check_orderings
 from pcrcg.report.outcomes import OutcomeSource
-from pcrcg.report.plots import plot_coverage, plot_table_recall
 from pcrcg.report.render import to_latex, to_markdown, write_csv, write_orderings_csv
 from pcrcg.report.runs import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs

@@ -10,6 +10,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pcrcg.data.layout import BENCHMARKS
+from pcrcg.plots import pyplot, save_figure
 
 DASH = "–"
 # coarse overlap bins shown in the table (the JSON keeps the 10 fine bins of measures.OVERLAP_EDGES)
@@ -210,13 +211,7 @@ def _lims(values: list[np.ndarray], pad: float = 0.1) -> tuple[float, float]:
 def picture(previews: Sequence[tuple[str, list[dict]]], out: str | Path) -> Path:
     """A few fragments of each data set side by side: per fragment a top-down and a side view, on
     the same metric axes everywhere (colored by their colors, or by height where they have none)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    plt = pyplot()
     rows = [(n, p) for n, p in previews if p]
     k = max(len(p) for _, p in rows)
     allp = [f["points"] for _, p in rows for f in p]
@@ -243,6 +238,4 @@ def picture(previews: Sequence[tuple[str, list[dict]]], out: str | Path) -> Path
     fig.suptitle("Fragments side by side (metres, same axes in every panel; fragment frame = first camera)",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, dpi=110)
