@@ -377,7 +377,12 @@ def _decorate_walls(room: Room, rng, walls: list[Wall], H: float) -> None:
 
 
 def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
-    """A random furnished room of ``room_type`` (one of :data:`ROOM_TYPES`; random when None)."""
+    """A random furnished room of ``room_type`` (one of :data:`ROOM_TYPES`; random when None).
+
+    Steps, in the order they draw from ``rng``: the type, floor plan and height; the shell (floor,
+    ceiling and walls with their openings: :func:`_shell`); columns (:func:`_columns`); furniture along
+    the walls and in the room, with clutter on its tops (:func:`_furnish`); clutter and rugs on the floor
+    (:func:`_floor_clutter`); things on the walls (:func:`_decorate_walls`); the lights (:func:`_light`)."""
     rtype = room_type or str(rng.choice(ROOM_TYPES, p=[0.22, 0.24, 0.16, 0.18, 0.1, 0.1]))
     poly, rects = _floor_plan(rng, rtype)
     W = max(p[0] for p in poly)
@@ -385,6 +390,22 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
     H = rng.uniform(2.5, 3.0)
     room = Room(size=np.array([W, D, H]))
     floor = Floor(rects, room.size)
+    walls = _shell(room, rng, poly, rects, H, floor)
+    _columns(room, rng, floor, H)
+    tops = _furnish(room, rng, walls, floor, rtype, H)
+    _floor_clutter(room, rng, floor, tops)
+    _decorate_walls(room, rng, walls, H)
+    _light(room, rng, floor, H)
+    room.cell = CELL
+    room.walkable = floor.walkable(0.55)
+    room.room_type = rtype
+    return room
+
+
+def _shell(room: Room, rng: np.random.Generator, poly: list[np.ndarray], rects: list[tuple[float, float, float, float]],
+           H: float, floor: Floor) -> list[Wall]:
+    """Floor and ceiling over the plan's rectangles, and the walls along its outline (one wall in four,
+    at random, in an accent material); the walls."""
     X, Y, Z = np.eye(3)
     ftex, ctex = material(rng, "floor"), material(rng, "paint")
     for x0, y0, x1, y1 in rects:
@@ -393,10 +414,13 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
     walls = [Wall(poly[k], poly[(k + 1) % len(poly)]) for k in range(len(poly))]
     main_tex = material(rng, "wall")
     accent = material(rng, "wall")
-    for k, wall in enumerate(walls):
+    for wall in walls:
         _wall_panels(room, rng, wall, H, accent if rng.random() < 0.25 else main_tex, floor)
+    return walls
 
-    # columns: square or round, free-standing or by a wall
+
+def _columns(room: Room, rng: np.random.Generator, floor: Floor, H: float) -> None:
+    """Columns, square or round, free-standing or by a wall (a Poisson number, 0.6 on average)."""
     for _ in range(int(rng.poisson(0.6))):
         r = rng.uniform(0.12, 0.3)
         M = _random_spot(rng, floor, 2 * r, 2 * r, 0.05)
@@ -405,13 +429,21 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
             room.panels += frustum(M, r, r, H, int(rng.choice([4, 16, 24])), tex, "wall", top=False)
             floor.take(M, 2 * r, 2 * r, H)
 
+
+def _furnish(room: Room, rng: np.random.Generator, walls: list[Wall], floor: Floor, rtype: str, H: float) -> list:
+    """Furniture along the walls and in the room, then clutter on the tops below 1.6 m; the tops
+    (:class:`pcrcg.data.synth.furniture.Surface`), where floor clutter may also land."""
     tops: list[F.Surface] = []
     _place_along_walls(room, rng, walls, floor, rtype, H, tops)
     _place_interior(room, rng, floor, rtype, tops)
     for top in tops:
         if top.M[2, 3] < 1.6:
             room.panels += F.clutter_on(rng, top, density=rng.uniform(*TOP_CLUTTER))
-    # floor clutter and rugs
+    return tops
+
+
+def _floor_clutter(room: Room, rng: np.random.Generator, floor: Floor, tops: list) -> None:
+    """Things on the floor (:data:`FLOOR_CLUTTER`, Poisson numbers) and rugs."""
     for what, rate in FLOOR_CLUTTER:
         for _ in range(int(rng.poisson(rate))):
             _place_one(room, rng, floor, what, tops)
@@ -421,8 +453,11 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
         if M is not None:
             tex = random_texture(rng, "rug") if rng.random() < 0.5 else material(rng, "fabric")
             room.panels += box(M @ placement(0, 0, 0.0), (w, d, 0.006), tex, "rug")
-    _decorate_walls(room, rng, walls, H)
 
+
+def _light(room: Room, rng: np.random.Generator, floor: Floor, H: float) -> None:
+    """One to three point lights 10-30 cm under the ceiling over the floor, their power shared, and the
+    ambient light."""
     n_lights = int(rng.integers(1, 4))
     lights = []
     for _ in range(n_lights):
@@ -432,7 +467,3 @@ def make_room(rng: np.random.Generator, room_type: str | None = None) -> Room:
     room.lights = np.asarray(lights)
     room.light_power = rng.uniform(1.5, 4.0, size=n_lights) / n_lights
     room.ambient = float(rng.uniform(0.08, 0.2))
-    room.cell = CELL
-    room.walkable = floor.walkable(0.55)
-    room.room_type = rtype
-    return room
