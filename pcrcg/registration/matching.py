@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+CPU_CHUNK = 128  # source rows per distance block on CPU (see match_descriptors)
+
 
 def _nearest(a: torch.Tensor, b: torch.Tensor, chunk: int) -> torch.Tensor:
     """For each row of a (N, D), the index of its L2-nearest row of b (M, D): (N,) int64."""
@@ -32,7 +34,7 @@ def match_descriptors(
     desc_tgt: np.ndarray | torch.Tensor,
     mutual: bool = False,
     device: str | torch.device | None = None,
-    chunk: int = 4096,
+    chunk: int | None = None,
     threads: int = 1,
     src_ids: np.ndarray | None = None,
     tgt_ids: np.ndarray | None = None,
@@ -41,13 +43,17 @@ def match_descriptors(
 
     desc_src (N, D), desc_tgt (M, D). Each source point is matched to its nearest target
     descriptor (K = N); with ``mutual`` only pairs that are each other's nearest neighbour are
-    kept, in source order. ``threads``: torch CPU threads meanwhile (0 = torch's setting).
+    kept, in source order. ``threads``: torch CPU threads meanwhile (0 = torch's setting). ``chunk``: source
+    rows per distance block (None: 128 on CPU, where a block that stays in cache made N = 5000 about 2x
+    faster than 4096 rows with the same matches, and 4096 elsewhere).
     ``src_ids`` (N,) / ``tgt_ids`` (M,): optional row identifiers (equal ids mean equal rows, e.g.
     the point indices of a sample drawn with replacement): each distinct row is then matched once,
     with the same result (ties go to the first position, as without ids).
     """
     from pcrcg.registration.ransac import torch_threads
 
+    if chunk is None:
+        chunk = CPU_CHUNK if torch.device(device if device is not None else "cpu").type == "cpu" else 4096
     with torch_threads(threads, device):
         if src_ids is None and tgt_ids is None:
             return _match(desc_src, desc_tgt, mutual, device, chunk)

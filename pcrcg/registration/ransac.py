@@ -372,8 +372,9 @@ class _GridOverlapScore(_PrunedOverlapScore):
         near = np.linalg.norm(np.maximum(np.abs(off) - 1, 0), axis=1) * c <= distance * (1 + 1e-3)
         sure = np.linalg.norm(np.abs(off) + 1, axis=1) * c < distance * (1 - 1e-3)
         grid = np.zeros(int(np.prod(self.dims)), dtype=np.int8)
-        grid[(occupied[:, None] + (off[near] @ strides)[None]).reshape(-1)] = 1  # maybe
-        grid[(occupied[:, None] + (off[sure] @ strides)[None]).reshape(-1)] = 2  # in
+        for label, offsets in ((1, off[near]), (2, off[sure])):  # maybe, then in (one offset at a time: cache-friendly)
+            for o in offsets @ strides:
+                grid[occupied + o] = label
         self.grid_t = torch.from_numpy(grid)
         self.strides_t = torch.as_tensor(strides, dtype=torch.float64)  # flat index of whole cells, exact in float64
         self.weight_t = torch.as_tensor(self.weight, dtype=torch.float64)
