@@ -414,9 +414,9 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
              progress: bool | None = None) -> dict[str, Any]:
     """Run the 2D pretraining described by ``cfg`` (``conf/pretrain2d.yaml``); see the module docstring.
 
-    Steps: the settings checked and a checkpoint of the same config reused; the data (:func:`_data_root`,
-    :func:`_sequences`, :func:`_training_pairs`, :func:`_held_out_items`); the seeded model trained and
-    evaluated in a tracked run (:func:`_train_and_evaluate`); the checkpoint written (:func:`_save`)."""
+    Steps: the settings checked and a checkpoint of the same config reused (:func:`_reuse_checkpoint`); the data
+    (:func:`_load_data`); the seeded model trained and evaluated in a tracked run (:func:`_train_and_evaluate`,
+    :func:`_summary`); the checkpoint written (:func:`_save`)."""
     from pcrcg.tracking.hashing import config_hash
 
     t0 = time.time()
@@ -425,17 +425,61 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
     s = check_settings(data)
     h = config_hash(data, HASH_EXCLUDE)
     out = default_checkpoint(data, base)
-    if not data.get("force", False):
-        prev = _reusable(out, h)
-        if prev is not None:
-            log(f"[pretrain2d] {out} holds this config's checkpoint (hash {h}); reusing it (force=true retrains)")
-            return {**prev, "checkpoint": str(out), "reused": True}
+    reused = None if data.get("force", False) else _reuse_checkpoint(out, h, log)
+    if reused is not None:
+        return reused
     if s.num_threads:
         torch.set_num_threads(s.num_threads)
     show = bool(lookup(data, "runtime.progress", True)) if progress is None else progress
     device = torch.device(resolve_device(lookup(data, "runtime.device")))
+    d = _load_data(data, s, base, device, log)
 
-    # ---- data
+    torch.manual_seed(s.seed)  # the model's init, after the data's draws
+    enc_cfg = dict(data.get("encoder2d") or {})
+    model = build_encoder(enc_cfg).to(device)
+    tracker, run_id = _start_tracking(data, h, base, out, log)
+    try:
+        result = _train_and_evaluate(model, d.train_seqs, d.eval_seqs, d.pairs, d.items, s, device, show, log,
+                                     tracker, run_id)
+        result.update(_summary(d, s, model, enc_cfg, data, h, out, run_id))
+        result["seconds"] = round(time.time() - t0, 1)
+        _save(model, out, data, h, d.root, result)
+        if tracker is not None:
+            _finish_tracking(tracker, run_id, result, out)
+    except BaseException as e:
+        if tracker is not None:
+            tracker.fail(run_id, e)
+        raise
+    return result
+
+
+def _reuse_checkpoint(out: Path, h: str, log: Callable[[str], None]) -> dict[str, Any] | None:
+    """The result of the checkpoint at ``out`` when it was made by this config (hash ``h``), marked reused;
+    None: train."""
+    prev = _reusable(out, h)
+    if prev is None:
+        return None
+    log(f"[pretrain2d] {out} holds this config's checkpoint (hash {h}); reusing it (force=true retrains)")
+    return {**prev, "checkpoint": str(out), "reused": True}
+
+
+@dataclass
+class _Data:
+    """What a pretraining reads: the data set's root, the training and held-out sequences, the name of the
+    held-out set (a split or ``holdout``), the training view pairs and the held-out items."""
+
+    root: Path
+    train_seqs: list[FrameSequence]
+    eval_seqs: list[FrameSequence]
+    eval_split: str
+    pairs: list[ViewPair]
+    items: list[EvalItem]
+
+
+def _load_data(data: Mapping[str, Any], s: Settings, base: Path, device: torch.device,
+               log: Callable[[str], None]) -> _Data:
+    """The data (:func:`_data_root`, :func:`_sequences`, :func:`_training_pairs` drawn with ``seed``,
+    :func:`_held_out_items`), and a line that says how much of it there is."""
     root = _data_root(data, base, log)
     layout = Layout(root)
     rng = np.random.default_rng(s.seed)
@@ -446,31 +490,20 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
     n_frames = sum(len(q) for q in train_seqs)
     log(f"[pretrain2d] {root}: {len(pairs)} training pairs from {n_frames} frames of {len(train_seqs)} sequences; "
         f"{len(items)} held-out pairs ({eval_split}); images {s.image_size or 'native'}; device {device}")
+    return _Data(root, train_seqs, eval_seqs, eval_split, pairs, items)
 
-    # ---- model (seeded init) and the tracked run
-    torch.manual_seed(s.seed)
-    enc_cfg = dict(data.get("encoder2d") or {})
-    model = build_encoder(enc_cfg).to(device)
-    tracker, run_id = _start_tracking(data, h, base, out, log)
-    try:
-        result = _train_and_evaluate(model, train_seqs, eval_seqs, pairs, items, s, device, show, log, tracker, run_id)
-        result.update({
-            "checkpoint": str(out), "pairs": len(pairs), "eval_pairs": len(items),
-            "eval_points": int(sum(len(it.matches) for it in items)), "pixel_threshold": s.pixel_threshold,
-            "image_size": list(s.image_size) if s.image_size else None, "arch": model.arch,
-            "init": str(enc_cfg.get("name", "scratch")), "eval_split": eval_split, "config_hash": h,
-            "pretrained_on": pretrained_on(data), "data_root": str(root),
-            "reused": False, "run_id": run_id,
-        })
-        result["seconds"] = round(time.time() - t0, 1)
-        _save(model, out, data, h, root, result)
-        if tracker is not None:
-            _finish_tracking(tracker, run_id, result, out)
-    except BaseException as e:
-        if tracker is not None:
-            tracker.fail(run_id, e)
-        raise
-    return result
+
+def _summary(d: _Data, s: Settings, model: ResUNet, enc_cfg: Mapping[str, Any], data: Mapping[str, Any], h: str,
+             out: Path, run_id: str | None) -> dict[str, Any]:
+    """What the result says besides the training's figures: the checkpoint, the data, the model, the run."""
+    return {
+        "checkpoint": str(out), "pairs": len(d.pairs), "eval_pairs": len(d.items),
+        "eval_points": int(sum(len(it.matches) for it in d.items)), "pixel_threshold": s.pixel_threshold,
+        "image_size": list(s.image_size) if s.image_size else None, "arch": model.arch,
+        "init": str(enc_cfg.get("name", "scratch")), "eval_split": d.eval_split, "config_hash": h,
+        "pretrained_on": pretrained_on(data), "data_root": str(d.root),
+        "reused": False, "run_id": run_id,
+    }
 
 
 def _data_root(data: Mapping[str, Any], base: Path, log: Callable[[str], None]) -> Path:
