@@ -131,6 +131,7 @@ def test_grid_cell_classes_are_exact():
     src[:2000] = rng.uniform(-1.0, 3.0, size=(2000, 3))  # far off too, outside the grid included
     d = 0.05
     grid = _GridOverlapScore(src, tgt, d, torch.float32, torch.device("cpu"))
+    grid._build()
     states = grid._states(torch.eye(3)[None], torch.zeros(1, 3))[0].numpy()
     true, _ = grid.tree.query(grid.src.double().numpy(), k=1)
     assert (true[states == 2] < d).all() and (true[states == 0] >= d).all()

@@ -1,6 +1,7 @@
 """Registration speed and recall: ours vs Predator's evaluation path, side by side in one run.
 
-    python -m pcrcg.benchmarks.registration [--pairs 16] [--n-points 5000 2500 1000 500 250]
+    python -m pcrcg.benchmarks.registration [--pairs 16] [--n-points 5000 2500 1000 500 250] [--seeds 3]
+        [--identical-only]
 
 Pairs: two depth frames of the real Kinect sequence in ``../shared/data/real-rgbd/
 redkitchen-frames`` back-projected and voxelised at 2.5 cm (Predator's voxel), cropped to
@@ -183,13 +184,7 @@ OURS = {  # name -> RansacConfig overrides of the full path
 }
 
 
-def main(argv: list[str] | None = None) -> dict:
-    import dataclasses
-
-    from pcrcg.evaluation.metrics import inlier_ratio
-    from pcrcg.registration.pipeline import RegistrationConfig, pair_seed, register_features
-    from pcrcg.registration.ransac import RansacConfig, ransac, ransac_open3d
-
+def _arguments(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=16)
     ap.add_argument("--n-points", type=int, nargs="+", default=[5000, 2500, 1000, 500, 250])
@@ -197,90 +192,133 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--iterations", type=int, default=50000)
     ap.add_argument("--seeds", type=int, default=3, help="RANSAC repeats per pair on identical correspondences")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--identical-only", action="store_true",
+                    help="only the identical-correspondences table (the full path runs once, for the correspondences; "
+                         "no ours-fast, ours-50k or Predator's path)")
     ap.add_argument("--json", default=None, help="also write the figures to this file")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
+
+def _full_paths(p: SimPair, k: int, n: int, ours: dict, legacy: np.random.RandomState, pred_cfg, acc: dict,
+                seed: int, with_predator: bool):
+    """Every full path on pair p (index k) at N = n, timed into ``acc``; returns the default path's registration."""
+    from pcrcg.evaluation.metrics import inlier_ratio
+    from pcrcg.registration.pipeline import pair_seed, register_features
+
+    sd = pair_seed(seed, "bench", k, k + 1, n)
+    first = None
+    for name, cfg in ours.items():
+        s0 = time.perf_counter()
+        reg = register_features(p.src, p.tgt, n, cfg, seed=sd)
+        acc[f"t_{name}"].append(time.perf_counter() - s0)
+        acc[f"ok_{name}"].append(_success(reg.transform, p))
+        first = reg if name == "ours" else first
+    c = first.correspondences
+    acc["ir"].append(inlier_ratio(p.src.points[c[:, 0]], p.tgt.points[c[:, 1]], p.transform))
+    if with_predator:
+        s0 = time.perf_counter()
+        T_pred = _predator_path(p, n, legacy, pred_cfg)
+        acc["t_predator"].append(time.perf_counter() - s0)
+        acc["ok_predator"].append(_success(T_pred, p))
+    return first
+
+
+def _identical(p: SimPair, k: int, first, base, corr_cfg, acc: dict, seeds: int, device: str) -> None:
+    """The default path's samples and matches into our RANSAC (overlap and correspondence ranking) and
+    Open3D's, ``seeds`` times each, timed into ``acc``."""
+    from pcrcg.registration.ransac import ransac, ransac_open3d
+
+    c = first.correspondences
+    sp, tp = p.src.points[first.src_idx], p.tgt.points[first.tgt_idx]
+    loc = np.stack([np.searchsorted(first.src_idx, c[:, 0]), np.searchsorted(first.tgt_idx, c[:, 1])], 1)
+    for rep in range(seeds):
+        rs = 1000 * k + rep
+        for key, fn in (("ov", lambda: ransac(sp, tp, loc, base, seed=rs, device=device)),
+                        ("c", lambda: ransac(sp, tp, loc, corr_cfg, seed=rs, device=device)),
+                        ("o3d", lambda: ransac_open3d(sp, tp, loc, base, seed=rs))):
+            s0 = time.perf_counter()
+            T = fn().transform
+            acc[f"t_s_{key}"].append(time.perf_counter() - s0)
+            acc[f"ok_s_{key}"].append(_success(T, p))
+
+
+def _row(n: int, acc: dict, names: list[str]) -> dict:
+    """One N's means: seconds per pair and RR of each path, the identical-correspondence figures."""
+    m = {k: float(np.mean(v)) for k, v in acc.items() if v}
+    row = {"n_points": n, "inlier_ratio": 100 * m["ir"]}
+    for name in names:
+        row[f"{name}_s_per_pair"] = m[f"t_{name}"]
+        row[f"{name}_rr"] = 100 * m[f"ok_{name}"]
+    if "predator" in names:
+        row["speedup_vs_predator"] = m["t_predator"] / m["t_ours"]
+    for key, label in (("ov", "same_ours"), ("c", "same_ours_fast"), ("o3d", "same_open3d")):
+        row[f"{label}_s"] = m[f"t_s_{key}"]
+        row[f"{label}_rr"] = 100 * m[f"ok_s_{key}"]
+    return row
+
+
+def _full_line(row: dict, names: list[str]) -> str:
+    line = f"{row['n_points']:>5} {row['inlier_ratio']:5.1f} | " + " | ".join(
+        f"{row[f'{k}_s_per_pair']:11.4f} {row[f'{k}_rr']:5.1f}" for k in names)
+    return line + (f" | {row['speedup_vs_predator']:12.1f}x" if "predator" in names else "")
+
+
+def _identical_line(row: dict) -> str:
+    return (f"{row['n_points']:>5} | {row['same_ours_s']:8.4f} {row['same_ours_rr']:5.1f} | {row['same_ours_fast_s']:8.4f} "
+            f"{row['same_ours_fast_rr']:5.1f} | {row['same_open3d_s']:8.4f} {row['same_open3d_rr']:5.1f} | "
+            f"{row['same_open3d_s'] / row['same_ours_s']:7.1f}x {row['same_open3d_s'] / row['same_ours_fast_s']:9.1f}x")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    import dataclasses
+
+    from pcrcg.registration.pipeline import RegistrationConfig
+    from pcrcg.registration.ransac import RansacConfig
+
+    args = _arguments(argv)
     t0 = time.perf_counter()
     pairs, source = make_pairs(args.pairs, args.seed)
     print(f"{len(pairs)} pairs from {source}; {np.mean([len(p.src.points) for p in pairs]):.0f} points per "
           f"fragment on average; overlap {min(p.overlap for p in pairs):.2f}..{max(p.overlap for p in pairs):.2f} "
           f"(built in {time.perf_counter() - t0:.1f} s)")
     base = RansacConfig(max_iterations=args.iterations)
-    ours = {k: RegistrationConfig(device=args.device, ransac=dataclasses.replace(base, **v)) for k, v in OURS.items()}
+    used = ["ours"] if args.identical_only else list(OURS)
+    ours = {k: RegistrationConfig(device=args.device, ransac=dataclasses.replace(base, **OURS[k])) for k in used}
     pred_cfg = dataclasses.replace(base, confidence=1.0)  # RANSACConvergenceCriteria(50000, 1000) in Open3D 0.20
     corr_cfg = dataclasses.replace(base, score="correspondences")
     legacy = np.random.RandomState(args.seed)
+    names = used + ([] if args.identical_only else ["predator"])
     rows = []
-    names = list(OURS) + ["predator"]
     print("Full path (sampling + matching + RANSAC), seconds per pair and registration recall:")
-    print(f"{'N':>5} {'IR %':>5} | " + " | ".join(f"{k:>9} s {'RR %':>5}" for k in names) + f" | {'speed-up ours':>13}")
-    same_lines = []
+    print(f"{'N':>5} {'IR %':>5} | " + " | ".join(f"{k:>9} s {'RR %':>5}" for k in names)
+          + ("" if args.identical_only else f" | {'speed-up ours':>13}"))
     for n in args.n_points:
         acc: dict[str, list] = {k: [] for k in ["ir"] + [f"t_{k}" for k in names] + [f"ok_{k}" for k in names]
                                  + ["t_s_ov", "ok_s_ov", "t_s_c", "ok_s_c", "t_s_o3d", "ok_s_o3d"]}
         for k, p in enumerate(pairs):
-            sd = pair_seed(args.seed, "bench", k, k + 1, n)
-            for name, cfg in ours.items():
-                s0 = time.perf_counter()
-                reg = register_features(p.src, p.tgt, n, cfg, seed=sd)
-                acc[f"t_{name}"].append(time.perf_counter() - s0)
-                acc[f"ok_{name}"].append(_success(reg.transform, p))
-                if name == "ours":
-                    first = reg
-            c = first.correspondences
-            acc["ir"].append(inlier_ratio(p.src.points[c[:, 0]], p.tgt.points[c[:, 1]], p.transform))
-            s0 = time.perf_counter()
-            T_pred = _predator_path(p, n, legacy, pred_cfg)
-            acc["t_predator"].append(time.perf_counter() - s0)
-            acc["ok_predator"].append(_success(T_pred, p))
-
-            # identical correspondences (the default path's samples and matches) into the RANSACs
-            sp, tp = p.src.points[first.src_idx], p.tgt.points[first.tgt_idx]
-            loc = np.stack([np.searchsorted(first.src_idx, c[:, 0]), np.searchsorted(first.tgt_idx, c[:, 1])], 1)
-            for rep in range(args.seeds):
-                rs = 1000 * k + rep
-                for key, fn in (("ov", lambda: ransac(sp, tp, loc, base, seed=rs, device=args.device)),
-                                ("c", lambda: ransac(sp, tp, loc, corr_cfg, seed=rs, device=args.device)),
-                                ("o3d", lambda: ransac_open3d(sp, tp, loc, base, seed=rs))):
-                    s0 = time.perf_counter()
-                    T = fn().transform
-                    acc[f"t_s_{key}"].append(time.perf_counter() - s0)
-                    acc[f"ok_s_{key}"].append(_success(T, p))
-        m = {k: float(np.mean(v)) for k, v in acc.items()}
-        row = {"n_points": n, "inlier_ratio": 100 * m["ir"]}
-        for name in names:
-            row[f"{name}_s_per_pair"] = m[f"t_{name}"]
-            row[f"{name}_rr"] = 100 * m[f"ok_{name}"]
-        row["speedup_vs_predator"] = m["t_predator"] / m["t_ours"]
-        for key, label in (("ov", "same_ours"), ("c", "same_ours_fast"), ("o3d", "same_open3d")):
-            row[f"{label}_s"] = m[f"t_s_{key}"]
-            row[f"{label}_rr"] = 100 * m[f"ok_s_{key}"]
-        rows.append(row)
-        print(f"{n:>5} {row['inlier_ratio']:5.1f} | "
-              + " | ".join(f"{row[f'{k}_s_per_pair']:11.4f} {row[f'{k}_rr']:5.1f}" for k in names)
-              + f" | {row['speedup_vs_predator']:12.1f}x", flush=True)
-        same_lines.append(
-            f"{n:>5} | {row['same_ours_s']:8.4f} {row['same_ours_rr']:5.1f} | {row['same_ours_fast_s']:8.4f} "
-            f"{row['same_ours_fast_rr']:5.1f} | {row['same_open3d_s']:8.4f} {row['same_open3d_rr']:5.1f} | "
-            f"{row['same_open3d_s'] / row['same_ours_s']:7.1f}x {row['same_open3d_s'] / row['same_ours_fast_s']:9.1f}x")
+            first = _full_paths(p, k, n, ours, legacy, pred_cfg, acc, args.seed, not args.identical_only)
+            _identical(p, k, first, base, corr_cfg, acc, args.seeds, args.device)
+        rows.append(_row(n, acc, names))
+        print(_full_line(rows[-1], names), flush=True)
     print(f"\nIdentical correspondences (the default path's), RANSAC alone, confidence 0.999, {args.seeds} seeds per pair:")
     print(f"{'N':>5} | {'ours s':>8} {'RR %':>5} | {'fast s':>8} {'RR %':>5} | {'Open3D s':>8} {'RR %':>5} | "
           f"{'O3D/ours':>8} {'O3D/fast':>9}")
-    print("\n".join(same_lines))
+    print("\n".join(_identical_line(r) for r in rows))
     tot = {name: sum(r[f"{name}_s_per_pair"] for r in rows) for name in names}
     summary = {
-        "pairs": len(pairs), "source": source, "n_points": args.n_points, "rows": rows,
+        "pairs": len(pairs), "source": source, "n_points": args.n_points, "seeds": args.seeds, "rows": rows,
         "total_s_per_pair": tot,
         "mean_rr": {name: float(np.mean([r[f"{name}_rr"] for r in rows])) for name in names},
         "settings": {name: dataclasses.asdict(c.ransac) for name, c in ours.items()} | {"predator": dataclasses.asdict(pred_cfg)},
     }
-    print("\nAll N together: " + ", ".join(
-        f"{name} {tot[name]:.3f} s/pair (RR {summary['mean_rr'][name]:.1f} %, {tot['predator'] / tot[name]:.0f}x faster than Predator's path)"
-        for name in OURS) + f"; Predator's path {tot['predator']:.3f} s/pair (RR {summary['mean_rr']['predator']:.1f} %)")
+    if not args.identical_only:
+        print("\nAll N together: " + ", ".join(
+            f"{name} {tot[name]:.3f} s/pair (RR {summary['mean_rr'][name]:.1f} %, {tot['predator'] / tot[name]:.0f}x faster "
+            f"than Predator's path)" for name in OURS) + f"; Predator's path {tot['predator']:.3f} s/pair "
+            f"(RR {summary['mean_rr']['predator']:.1f} %)")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))
     return summary
-
 
 if __name__ == "__main__":
     from pcrcg.cli import one_line_errors

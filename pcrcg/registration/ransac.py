@@ -78,7 +78,7 @@ class RansacConfig:
     target instead of the KD-tree and skip hypotheses that can no longer win (:class:`_GridOverlapScore`:
     the same chosen hypothesis; ``False``: score every point of every hypothesis, the reference).
     prune_min_points: only where the grid would be too large (more than ``_GridOverlapScore.MAX_CELLS``
-    cells of ``distance / 4``): the chunked shortcut (:class:`_PrunedOverlapScore`) from this many source points, the
+    cells of ``distance / 2``): the chunked shortcut (:class:`_PrunedOverlapScore`) from this many source points, the
     reference below. Measured (RANSAC alone, the Open3D 0.10 budget, 8 simulated pairs from the real
     redkitchen frames at 2.5 cm x 3 seeds, identical results): N = 5000 29.4 s (chunked) -> 8.0 s (grid),
     N = 1000 6.4 s (reference) -> 3.8 s, N = 250 2.0 s -> 1.6 s.
@@ -330,7 +330,8 @@ class _GridOverlapScore(_PrunedOverlapScore):
     (CPU only). Exact: a hypothesis that can still be chosen gets its exact count, and the hypotheses of
     the batch's top count their exact summed squared distances; a hypothesis that cannot win gets -1.
 
-    The target's bounding box (grown by ``distance``) is cut into cubic cells of edge ``distance / 4``.
+    The target's bounding box (grown by ``distance``) is cut into cubic cells of edge ``distance / 4``
+    (coarser, down to ``distance / 2``, for a box too large for ``MAX_CELLS``).
     A cell is *in* when a target point lies in a cell so near that every point of both cells is closer
     than ``distance`` (so every point of the cell is an inlier), *out* when no target point lies in a
     cell whose nearest point could be within ``distance`` (every point of the cell is an outlier), and
@@ -338,29 +339,43 @@ class _GridOverlapScore(_PrunedOverlapScore):
     one whose upper bound is below the best lower bound (or ``floor``) is dropped without a query, and
     only the *maybe* points of the others go to the KD-tree. With target points about as far apart as
     ``distance`` (Predator's sampled N), most points of a good hypothesis are *in* and most of a bad
-    one *out*. :func:`_overlap_scorer` uses it where the grid has at most ``MAX_CELLS`` cells.
+    one *out*. The grid is built once ``WARM`` hypotheses have been scored (until then the chunked scorer
+    does it: an easy pair may stop before the grid would pay for itself). :func:`_overlap_scorer` uses it
+    where the grid has at most ``MAX_CELLS`` cells.
     """
 
     CELLS_PER_DISTANCE = 4
-    MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m at Predator's 5 cm threshold
+    MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m in cells of 1/4 of Predator's 5 cm
     TOP = 8  # hypotheses counted exactly first, to raise the bar for the others
+    WARM = 16  # hypotheses scored by the chunked scorer before the grid pays for itself (easy pairs stop early)
 
     @classmethod
-    def _frame(cls, tgt: np.ndarray, distance: float) -> tuple[float, int, np.ndarray, np.ndarray]:
-        """Cell edge, reach in cells, origin (3,) and grid shape (3,) for target points tgt (M, 3)."""
-        c = distance / cls.CELLS_PER_DISTANCE
-        reach = int(math.ceil(distance / c)) + 1
+    def _frame(cls, tgt: np.ndarray, distance: float) -> tuple[float, int, np.ndarray, np.ndarray] | None:
+        """Cell edge, reach in cells, origin (3,) and grid shape (3,) for target points tgt (M, 3): cells of
+        ``distance / CELLS_PER_DISTANCE``, coarser (down to ``distance / 2``) where that grid would have more
+        than ``MAX_CELLS`` cells; None where even that one would."""
         lo, hi = np.min(tgt, axis=0), np.max(tgt, axis=0)
-        origin = lo - (reach + 1) * c  # a border of cells farther than ``distance`` from every target point
-        return c, reach, origin, np.ceil((hi + (reach + 1) * c - origin) / c).astype(np.int64) + 1
+        for k in range(cls.CELLS_PER_DISTANCE, 1, -1):
+            c = distance / k
+            reach = k + 1
+            origin = lo - (reach + 1) * c  # a border of cells farther than ``distance`` from every target point
+            dims = np.ceil((hi + (reach + 1) * c - origin) / c).astype(np.int64) + 1
+            if int(np.prod(dims)) <= cls.MAX_CELLS:
+                return c, reach, origin, dims
+        return None
 
     @classmethod
     def fits(cls, tgt: np.ndarray, distance: float) -> bool:
-        """Whether the grid of target points tgt (M, 3) has at most ``MAX_CELLS`` cells."""
-        return int(np.prod(cls._frame(np.asarray(tgt, dtype=np.float64), distance)[3])) <= cls.MAX_CELLS
+        """Whether a grid of target points tgt (M, 3) has at most ``MAX_CELLS`` cells."""
+        return cls._frame(np.asarray(tgt, dtype=np.float64), distance) is not None
 
     def __init__(self, src: np.ndarray, tgt: np.ndarray, distance: float, dtype, device: torch.device):
         super().__init__(src, tgt, distance, dtype, device)
+        self.grid_t = None  # built at the first batch after WARM scored hypotheses
+        self.scored = 0
+
+    def _build(self) -> None:
+        distance = self.distance
         tgt_u = self.tree.data
         c, reach, self.origin, self.dims = self._frame(tgt_u, distance)
         self.cell = c
@@ -407,6 +422,11 @@ class _GridOverlapScore(_PrunedOverlapScore):
 
     def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         H = R.shape[0]
+        self.scored += H
+        if self.grid_t is None:
+            if self.scored <= self.WARM:
+                return super().__call__(R, t, floor)
+            self._build()
         states = self._states(R, t)
         maybe = states == 1
         low = (states == 2).to(torch.float64) @ self.weight_t
