@@ -180,7 +180,7 @@ def _load_views(prefixes: list[str], intrinsics: str | None) -> list:
 def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     """Register two clouds with a trained checkpoint: network outputs, sampling, matching, RANSAC."""
     from pcrcg.evaluation.model import as_fragment
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
     from pcrcg.models.train import infer_clouds, load_module
     from pcrcg.registration.pipeline import register_features
 
@@ -248,7 +248,7 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
 
 def run_pair(cfg: DictConfig) -> dict[str, Any]:
     from pcrcg.data.layout import check_rigid, read_matrix
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
     from pcrcg.registration.baselines import METHODS, register_pair
 
     method = str(cfg.method)
@@ -325,7 +325,7 @@ def learned_table(summary: dict[str, Any], n_points: list[int]) -> str:
 
 
 def run_benchmark(cfg: DictConfig) -> dict[str, Any]:
-    from pcrcg.evaluation.run import CLASSICAL, configs_from, run_benchmark_mode
+    from pcrcg.evaluation.stage import CLASSICAL, configs_from, run_benchmark_mode
 
     method = str(cfg.method)
     if method != "learned" and method not in CLASSICAL:

@@ -318,7 +318,7 @@ def _curves(ctx: RunContext) -> dict[str, list]:
 
 def evaluate_method(ctx: RunContext) -> EvalOutput:
     """Evaluate on both benchmarks at every sample size (learned) or run a classical baseline."""
-    evaluate = _need("pcrcg.evaluation.run", "evaluate", "evaluate")
+    evaluate = _need("pcrcg.evaluation.stage", "evaluate", "evaluate")
     result = evaluate(ctx.cfg, data_root=ctx.data_root, checkpoint=ctx.checkpoint,
                       out_dir=ctx.out_dir / "eval", device=ctx.device)
     if isinstance(result, EvalOutput):

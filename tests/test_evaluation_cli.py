@@ -170,7 +170,7 @@ def test_benchmark_mode_icp_from_given_estimates(layout, tmp_path):
 
 
 def test_pipeline_evaluate_stage_with_a_classical_method(layout, tmp_path):
-    from pcrcg.evaluation.run import evaluate
+    from pcrcg.evaluation.stage import evaluate
 
     cfg = OmegaConf.create({"method": "fpfh", "seed": 0, "views": 2, "icp_init": "identity",
                             "eval": {"benchmarks": ["3DMatch"], "n_points": [1000], "ransac_iterations": 5000,
@@ -233,7 +233,7 @@ def test_evaluate_model_outputs_on_simulated_network_outputs(tmp_path):
 
 
 def test_registration_settings_follow_the_profile_and_run_eval_overrides():
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
 
     rcfg, bcfg = configs_from(_compose([]))
     assert rcfg.ransac.max_iterations == 10000 and rcfg.n_points == (5000, 2500, 1000, 500, 250)
@@ -284,7 +284,7 @@ def _fake_predictions(root: Path, noise: float = 0.3):
 def test_pipeline_evaluate_stage_learned_and_icp_from_learned(layout, tmp_path, monkeypatch):
     import sys as _sys
 
-    from pcrcg.evaluation.run import evaluate
+    from pcrcg.evaluation.stage import evaluate
 
     fake, calls = _fake_predictions(layout)
     monkeypatch.setitem(_sys.modules, "pcrcg.models.predict", SimpleNamespace(predict_benchmark=fake))

@@ -281,7 +281,7 @@ def _run_cfg(root: Path, out: Path, *overrides: str):
     pytest.param(["features=deep", "projection=explicit"], id="pcr-cg", marks=pytest.mark.slow),
 ])
 def test_tiny_training_and_evaluation(tiny_root, tmp_path, color):
-    from pcrcg.evaluation.run import evaluate
+    from pcrcg.evaluation.stage import evaluate
     from pcrcg.models.train import load_module, train
 
     cfg = _run_cfg(tiny_root, tmp_path / "train", *color)

@@ -53,7 +53,7 @@ def test_kpconv_layer_on_the_gpu_matches_the_cpu():
 
 
 def test_every_auto_device_is_the_gpu():
-    import pcrcg.evaluation.run
+    import pcrcg.evaluation.stage
     import pcrcg.models.train
     import pcrcg.pipeline
     import pcrcg.pretrain2d.core
@@ -63,5 +63,5 @@ def test_every_auto_device_is_the_gpu():
     # every stage resolves "auto" with the one resolver (strings; callers wanting a torch.device wrap it)
     assert resolve_device("auto") == "cuda" and resolve_device(None) == "cuda" and resolve_device("cpu") == "cpu"
     assert torch.device(resolve_device("auto")).type == "cuda"
-    for stage in (pcrcg.pipeline, pcrcg.pretrain2d.core, pcrcg.vision.learned, pcrcg.models.train, pcrcg.evaluation.run):
+    for stage in (pcrcg.pipeline, pcrcg.pretrain2d.core, pcrcg.vision.learned, pcrcg.models.train, pcrcg.evaluation.stage):
         assert stage.resolve_device is resolve_device, stage.__name__

@@ -44,7 +44,7 @@ def test_a_mirror_set_alone_is_an_error_naming_both_keys(mirror, primary, value)
 
 
 def test_the_primary_key_moves_its_mirror():
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
 
     cfg = _run_cfg("eval.ransac_distance=0.03", "eval.ransac_iterations=123", "eval.n_points=[1000]", "views=3",
                    "window_size=7")
@@ -58,7 +58,7 @@ def test_the_primary_key_moves_its_mirror():
 
 
 def test_configs_from_refuses_two_values_instead_of_overwriting_one():
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
 
     both = OmegaConf.create({"eval": {"ransac_distance": 0.05}, "registration": {"ransac": {"distance": 0.03}}})
     with pytest.raises(ConfigError, match="eval.ransac_distance"):
@@ -70,7 +70,7 @@ def test_configs_from_refuses_two_values_instead_of_overwriting_one():
 
 def test_predator_variant_reaches_the_classical_methods(tmp_path):
     from pcrcg.evaluation.metrics import load_benchmark
-    from pcrcg.evaluation.run import run_classical
+    from pcrcg.evaluation.stage import run_classical
     from pcrcg.data.layout import Layout
     from pcrcg.registration.synthetic import write_layout
 
@@ -133,7 +133,7 @@ def test_open3d_010_budget_stops_after_the_validated_hypotheses():
 
 
 def test_the_run_defaults_to_the_published_numbers_ransac_budget():
-    from pcrcg.evaluation.run import _protocol, configs_from
+    from pcrcg.evaluation.stage import _protocol, configs_from
     from pcrcg.registration import RegistrationConfig
 
     rcfg, bcfg = configs_from(_run_cfg())
@@ -156,7 +156,7 @@ def test_the_run_defaults_to_the_published_numbers_ransac_budget():
 
 
 def test_fragments_with_fewer_points_are_resampled_as_predator_does():
-    from pcrcg.evaluation.run import configs_from
+    from pcrcg.evaluation.stage import configs_from
     from pcrcg.registration import FragmentOutput, RegistrationConfig, register_features
     from pcrcg.registration.sampling import sample_indices
 
@@ -185,7 +185,7 @@ def test_fragments_with_fewer_points_are_resampled_as_predator_does():
 
 @pytest.mark.parametrize("profile, voxel", [("tiny", 0.06), ("cpu", 0.06), ("paper", 0.025)])
 def test_registration_distances_are_twice_the_models_voxel_and_the_metrics_stay(profile, voxel):
-    from pcrcg.evaluation.run import configs_from, thresholds_from
+    from pcrcg.evaluation.stage import configs_from, thresholds_from
 
     cfg = load_run_config([f"profile={profile}"])
     rcfg, bcfg = configs_from(cfg)

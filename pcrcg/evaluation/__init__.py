@@ -38,9 +38,9 @@ Other entry points
 ------------------
 * :func:`score_directories` ``(benchmark_dir, estimate_dir, predator_variant=False) ->
   BenchmarkScore`` (``.rr``, ``.rr_pair``, ``.scenes``, ``.rre``, ``.rte``, ``.to_dict()``).
-* :func:`pcrcg.evaluation.run.evaluate` ``(cfg, *, data_root, checkpoint, out_dir, device)``:
+* :func:`pcrcg.evaluation.stage.evaluate` ``(cfg, *, data_root, checkpoint, out_dir, device)``:
   the pipeline's evaluation stage (``python -m pcrcg.run``).
-* :func:`pcrcg.evaluation.run.run_classical` ``(method, root, benchmark, *, cfg, out_dir, init, ...)``.
+* :func:`pcrcg.evaluation.stage.run_classical` ``(method, root, benchmark, *, cfg, out_dir, init, ...)``.
 * ``python -m pcrcg.evaluate mode=score|pair|benchmark`` (see ``pcrcg/evaluate.py``).
 """
 

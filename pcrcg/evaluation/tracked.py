@@ -2,7 +2,7 @@
 
 Every FINISHED run of the named MLflow experiments that trained a model (``method=learned``, or
 ``icp``/``color_icp`` with ``icp_init=learned``) is evaluated on the test benchmarks of another data root
-with the evaluation stage of a run (:func:`pcrcg.evaluation.run.evaluate`), under the run's own logged
+with the evaluation stage of a run (:func:`pcrcg.evaluation.stage.evaluate`), under the run's own logged
 config (registration and protocol settings, every N, seed) with ``data.root`` replaced and
 ``eval.max_pairs`` null (every pair of the other root). The results go into the same run:
 
@@ -336,7 +336,7 @@ def plan(mlflow_client: Any, experiments: Mapping[str, str], *, name: str, root:
     Raises before any evaluation: a corrupt checkpoint (DataError naming it), a run id of ``run_ids``
     not among the experiments' FINISHED runs, a benchmark or view file of ``root`` a run needs.
     """
-    from pcrcg.evaluation.run import check_layout, check_views
+    from pcrcg.evaluation.stage import check_layout, check_views
 
     wanted = set(run_ids)
     out = Plan()
@@ -389,7 +389,7 @@ def evaluate_candidate(tracker: Any, cand: Candidate, *, name: str, root: Path, 
                        progress: bool = True) -> dict[str, float]:
     """Evaluate one run's model on ``root`` as its evaluation stage did and log into the run
     (artifacts and tags first, metrics last). Returns the prefixed metrics."""
-    from pcrcg.evaluation.run import evaluate
+    from pcrcg.evaluation.stage import evaluate
     from pcrcg.device import resolve_device
     from pcrcg.tracking.git import code_version
 

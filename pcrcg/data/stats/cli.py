@@ -23,7 +23,7 @@ Rows (see :mod:`pcrcg.data.stats.measures` for the definitions)
     * overlap histograms of the benchmark pairs (``gt.log`` pairs, ``gt_overlap.log`` overlaps) and of
       the training pairs (``pairs/train.txt``);
     * FPFH + RANSAC registration recall per benchmark, by the project's own
-      :func:`pcrcg.evaluation.run.run_benchmark_mode` with the settings of ``python -m pcrcg.evaluate
+      :func:`pcrcg.evaluation.stage.run_benchmark_mode` with the settings of ``python -m pcrcg.evaluate
       mode=benchmark method=fpfh profile=<--profile>`` (the 3DMatch protocol: counted pairs are
       those with j - i > 1; recall per scene, then averaged); ``--pairs N`` pairs per benchmark,
       spread evenly over the pairs whose two fragments exist;
@@ -150,7 +150,7 @@ def _notes(cfg) -> str:
         f"{cfg.plane_iterations} iterations, seed {cfg.seed}) on 5 cm voxels; normal entropy: axial orientations of "
         f"normals at 5 cm voxels in {cfg.n_cells} axial Fibonacci cells (max "
         f"{__import__('math').log2(cfg.n_cells):.2f} bits); FPFH + RANSAC through "
-        f"`pcrcg.evaluation.run.run_benchmark_mode` (profile {cfg.profile}), at most {cfg.pairs or 'all'} pairs "
+        f"`pcrcg.evaluation.stage.run_benchmark_mode` (profile {cfg.profile}), at most {cfg.pairs or 'all'} pairs "
         "per benchmark, spread evenly; SIFT by `pcrcg.vision.matching` (`conf/matcher2d/sift.yaml`) on the "
         "first-first and last-last view pairs of those pairs; overlap counts in bins 0–10/10–30/30–50/50–70/70–100%.\n"
     )

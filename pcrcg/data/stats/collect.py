@@ -211,11 +211,11 @@ def write_subset_layout(src: Source, chosen: dict[str, list[PairRecord]], root: 
 def fpfh_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig, eval_cfg=None,
                progress: bool = True) -> dict[str, Any] | None:
     """FPFH + RANSAC registration recall per benchmark on the selected pairs, through the project's
-    own path (:func:`pcrcg.evaluation.run.run_benchmark_mode` with the settings of ``python -m
+    own path (:func:`pcrcg.evaluation.stage.run_benchmark_mode` with the settings of ``python -m
     pcrcg.evaluate mode=benchmark method=fpfh``); None without benchmark pairs."""
     from omegaconf import OmegaConf
 
-    from pcrcg.evaluation.run import configs_from, run_benchmark_mode
+    from pcrcg.evaluation.stage import configs_from, run_benchmark_mode
 
     chosen = {b: s["selected"] for b, s in sel.items() if s["selected"]}
     if not chosen:

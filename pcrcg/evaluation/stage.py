@@ -1,4 +1,4 @@
-"""Running a method over the test benchmarks of a data set in the 3DMatch layout.
+"""The evaluation stage: running a method over the test benchmarks of a data set in the 3DMatch layout.
 
 * :func:`run_classical` registers every pair of one benchmark with ``fpfh | icp | color_icp |
   sift_dlt | sift_lifted``, writes ``<out_dir>/<scene>/est.log`` and scores it;
