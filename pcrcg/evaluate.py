@@ -182,7 +182,7 @@ def run_pair_learned(cfg: DictConfig) -> dict[str, Any]:
     from pcrcg.evaluation.model import as_fragment
     from pcrcg.evaluation.stage import configs_from
     from pcrcg.models.train import infer_clouds, load_module
-    from pcrcg.registration.pipeline import register_features
+    from pcrcg.registration.feature_registration import register_features
 
     n_points = int(cfg.pair_points)
     if n_points < 3:

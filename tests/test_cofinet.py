@@ -174,7 +174,7 @@ def test_fine_matching_recovers_a_known_transform():
     the patches, the correspondences and the project's RANSAC on them give T back; the fine labels
     are the true pairs."""
     from pcrcg.registration.correspondences import register_correspondences
-    from pcrcg.registration.pipeline import RegistrationConfig
+    from pcrcg.registration.feature_registration import RegistrationConfig
 
     g = torch.Generator().manual_seed(3)
     T = rigid(4)
@@ -228,7 +228,7 @@ def test_evaluation_registers_with_ransac_on_the_models_correspondences():
     from pcrcg.evaluation.metrics import PairRecord, SceneGT, information_matrix
     from pcrcg.evaluation.model import evaluate_model_outputs
     from pcrcg.models.module import PairOutput
-    from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig
+    from pcrcg.registration.feature_registration import FragmentOutput, RegistrationConfig
 
     rng = np.random.default_rng(5)
     T = rigid(6).numpy()
@@ -374,7 +374,7 @@ def test_training_on_one_pair_learns_to_match_and_register_it():
     precision 0.03 -> 0.92, correspondences within 0.1 m 0% -> 12%, RTE 1.05 -> 0.08 m, RRE 24 -> 5 deg)."""
     from pcrcg.models.module import PCRCGModule
     from pcrcg.registration.correspondences import register_correspondences
-    from pcrcg.registration.pipeline import RegistrationConfig
+    from pcrcg.registration.feature_registration import RegistrationConfig
 
     torch.manual_seed(0)
     v = 0.1

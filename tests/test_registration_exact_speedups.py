@@ -98,7 +98,7 @@ def _outputs(rng, pts, noise):
 @pytest.mark.parametrize("mutual", [False, True])
 @pytest.mark.parametrize("fewer_points", ["with_replacement", "whole"])
 def test_pipeline_results_do_not_change(mutual, fewer_points, monkeypatch):
-    import pcrcg.registration.pipeline as P
+    import pcrcg.registration.feature_registration as P
 
     rng, src, tgt, _ = _clouds(5, n=900)
     a = _outputs(np.random.default_rng(1), src, 0.3)

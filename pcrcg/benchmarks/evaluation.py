@@ -39,10 +39,10 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch
 
-    import pcrcg.registration.pipeline as P
+    import pcrcg.registration.feature_registration as P
     from pcrcg.evaluation.model import as_fragment
     from pcrcg.models.predict import predict_benchmark
-    from pcrcg.registration.pipeline import RegistrationConfig, pair_seed, register_features
+    from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
     from pcrcg.registration.ransac import RansacConfig
 
     torch.set_num_threads(1)

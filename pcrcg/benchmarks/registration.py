@@ -117,7 +117,7 @@ def make_pairs(n_pairs: int, seed: int = 0, voxel: float = 0.025, dim: int = 32)
 
     from pcrcg.evaluation.metrics import information_matrix
     from pcrcg.geometry import invert, make_transform, random_rotation, transform_points
-    from pcrcg.registration.pipeline import FragmentOutput
+    from pcrcg.registration.feature_registration import FragmentOutput
 
     rng = np.random.default_rng(seed)
     source = "redkitchen frames" if (FRAMES / "camera-intrinsics.txt").is_file() else "synthetic room"
@@ -203,7 +203,7 @@ def _full_paths(p: SimPair, k: int, n: int, ours: dict, legacy: np.random.Random
                 seed: int, with_predator: bool):
     """Every full path on pair p (index k) at N = n, timed into ``acc``; returns the default path's registration."""
     from pcrcg.evaluation.metrics import inlier_ratio
-    from pcrcg.registration.pipeline import pair_seed, register_features
+    from pcrcg.registration.feature_registration import pair_seed, register_features
 
     sd = pair_seed(seed, "bench", k, k + 1, n)
     first = None
@@ -272,7 +272,7 @@ def _identical_line(row: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     import dataclasses
 
-    from pcrcg.registration.pipeline import RegistrationConfig
+    from pcrcg.registration.feature_registration import RegistrationConfig
     from pcrcg.registration.ransac import RansacConfig
 
     args = _arguments(argv)

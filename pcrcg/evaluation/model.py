@@ -26,7 +26,7 @@ from pcrcg.evaluation.metrics import (
 )
 from pcrcg.evaluation.pairs import INLIER_RATIO_FILE, write_inlier_ratios
 from pcrcg.registration.correspondences import register_correspondences
-from pcrcg.registration.pipeline import FragmentOutput, RegistrationConfig, pair_seed, register_features
+from pcrcg.registration.feature_registration import FragmentOutput, RegistrationConfig, pair_seed, register_features
 from pcrcg.registration.ransac import ransac, torch_threads
 
 log = logging.getLogger(__name__)

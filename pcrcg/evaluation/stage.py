@@ -43,7 +43,7 @@ from pcrcg.evaluation.metrics import (
 from pcrcg.evaluation.model import evaluate_model_outputs, subset
 from pcrcg.evaluation.pairs import pair_artifacts
 from pcrcg.registration.baselines import METHODS as CLASSICAL, SIFT_METHODS, BaselineConfig, register_pair
-from pcrcg.registration.pipeline import RegistrationConfig
+from pcrcg.registration.feature_registration import RegistrationConfig
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,8 @@ Public API (imported lazily, so ``import pcrcg.models`` stays cheap):
 * :class:`~pcrcg.models.losses.PredatorLoss`, :func:`~pcrcg.models.losses.circle_loss`,
   :func:`~pcrcg.models.losses.weighted_bce`.
 * :class:`~pcrcg.models.module.PCRCGModule`, :class:`~pcrcg.models.module.PairOutput`,
-  :class:`~pcrcg.registration.pipeline.FragmentOutput` (its home is the registration stage, whose input it is).
+  :class:`~pcrcg.registration.feature_registration.FragmentOutput` (its home is the registration stage,
+  whose input it is).
 * :class:`~pcrcg.models.datamodule.PairDataModule`, :class:`~pcrcg.models.datamodule.PairCollate`,
   :class:`~pcrcg.models.datamodule.PairBatch`.
 * :func:`pcrcg.models.train.train` ``(cfg) -> checkpoint path`` (import it from the submodule:

@@ -37,7 +37,7 @@ from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.fields import known_fields
 from pcrcg.models.losses import LossConfig, PredatorLoss
 from pcrcg.models.predator import build_predator
-from pcrcg.registration.pipeline import FragmentOutput
+from pcrcg.registration.feature_registration import FragmentOutput
 
 STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall", "overlap_precision",
              "overlap_recall", "matchability_precision", "matchability_recall",

@@ -2,7 +2,7 @@
 
 :func:`predict_benchmark` ``(cfg, data_root, checkpoint, benchmark, device="cpu", max_pairs=None)
 -> Iterator[PairOutput]``: each :class:`~pcrcg.models.module.PairOutput` has ``scene, i, j``,
-``src`` / ``tgt`` (:class:`~pcrcg.registration.pipeline.FragmentOutput`: ``points (N, 3)``,
+``src`` / ``tgt`` (:class:`~pcrcg.registration.feature_registration.FragmentOutput`: ``points (N, 3)``,
 ``descriptors (N, D)``, ``overlap (N,)``, ``matchability (N,)``, NumPy, each fragment in its own
 frame), the data set's ``transform`` (src -> tgt) and ``color_coverage`` (nan without color).
 

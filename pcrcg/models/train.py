@@ -49,7 +49,7 @@ from pcrcg.errors import ConfigError, DataError, one_line
 from pcrcg.models.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import PairOutput, PCRCGModule, build_lifter_from
-from pcrcg.registration.pipeline import FragmentOutput
+from pcrcg.registration.feature_registration import FragmentOutput
 
 LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
 

@@ -38,7 +38,7 @@ from pcrcg.registration.baselines import (
     register_sift_lifted,
 )
 from pcrcg.registration.matching import match_descriptors
-from pcrcg.registration.pipeline import (
+from pcrcg.registration.feature_registration import (
     FeatureRegistration,
     FragmentOutput,
     RegistrationConfig,

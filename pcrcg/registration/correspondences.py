@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcrcg.registration.pipeline import RegistrationConfig
+from pcrcg.registration.feature_registration import RegistrationConfig
 from pcrcg.registration.ransac import RansacResult, ransac, ransac_open3d, torch_threads
 
 

@@ -1,4 +1,4 @@
-"""Predator's registration of a pair from per-point network outputs.
+"""Feature registration: Predator's registration of a pair from per-point network outputs.
 
 For one pair and one N: sample N points per fragment by ``overlap x matchability``
 (:mod:`pcrcg.registration.sampling`), match their descriptors by nearest neighbour (optionally
