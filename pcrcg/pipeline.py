@@ -23,7 +23,7 @@ multirun callback reports failures at the end); a single run re-raises.
 Every run ends in a terminal state: FINISHED, FAILED (an error, also ``SystemExit``), or KILLED
 (Ctrl-C, SIGTERM: the run is closed, then the interruption goes on and stops the command). A run
 whose process was killed outright (SIGKILL) stays RUNNING in the store; the next launch of the same
-config closes it as KILLED before it starts (:meth:`~pcrcg.tracking.runs.RunTracker.close_stale`).
+config closes it as KILLED before it starts (:meth:`~pcrcg.tracking.tracker.RunTracker.close_stale`).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain, without
 
 if TYPE_CHECKING:  # pragma: no cover
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
 
 STATUS_FILE = "pcrcg_status.json"
 # keys whose overrides do not go into a run's name (they are tags or do not change the result)
@@ -380,7 +380,7 @@ def _open_tracker(cfg: DictConfig, job: JobInfo, h: str) -> "RunTracker | None":
     config hash's stale runs (RUNNING, their process gone) closed as KILLED."""
     if cfg.logger.name != "mlflow":
         return None
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import resolve_tracking_uri
 
     uri = resolve_tracking_uri(cfg.logger.tracking_uri, job.base_dir)
@@ -518,7 +518,7 @@ def _check_inputs(ctx: RunContext) -> None:
 
 
 def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dict[str, str]:
-    from pcrcg.tracking.runs import identity_tags
+    from pcrcg.tracking.tracker import identity_tags
 
     tags = {
         **identity_tags(str(cfg.experiment_name), h, str(OmegaConf.select(cfg, "profile.name", default="?"))),

@@ -162,7 +162,7 @@ def store(tmp_path, monkeypatch, tiny_root):
     import yaml
 
     from pcrcg.tracking.hashing import to_plain
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)

@@ -266,7 +266,7 @@ def test_stale_running_runs_are_closed_on_relaunch_and_left_out_of_the_report(tm
     from pcrcg.pipeline import JobInfo, run_job
     from pcrcg.report.runs import load_runs
     from pcrcg.tracking.hashing import config_hash, to_plain
-    from pcrcg.tracking.runs import TAG_HASH, TAG_PID, RunTracker, owner_tags
+    from pcrcg.tracking.tracker import TAG_HASH, TAG_PID, RunTracker, owner_tags
     from test_run_support import tracked_runs
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
@@ -343,7 +343,7 @@ def test_sweep_interrupted_during_training(tiny_root, tmp_path):
 
 _OPEN_STORE = """
 import sys, time
-from pcrcg.tracking.runs import RunTracker
+from pcrcg.tracking.tracker import RunTracker
 t = float(sys.argv[2])
 while time.time() < t:
     time.sleep(0.005)

@@ -46,7 +46,7 @@ def _log(tr, name, params, tags, metrics, status="FINISHED", error=None):
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """Runs of three experiments logged directly (no pipeline): known numbers everywhere."""
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import ensure_store
 
     root = tmp_path_factory.mktemp("report")

@@ -83,7 +83,7 @@ def _store(root: Path, flip: bool = False) -> str:
 
     PCR-CG = Predator + 35% of the pairs (``flip``: the other way round); windows: 11x11 = 3x3 + 35%,
     7x7 = 11x11 (no difference), 17x17 = 11x11 + 35%; 2 views = 1 view. No projection runs."""
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import ensure_store
 
     uri = f"sqlite:///{root}/mlflow.db"
@@ -274,7 +274,7 @@ def test_line_verdicts_follow_the_expected_sign_and_need_both_rows():
 ])
 def test_the_identity_rule_picks_the_runs_and_the_findings_name_their_code(tmp_path, identity, n_runs, codes):
     """PCR-CG's seed 0 run again by newer code B: under config_and_code only that run counts for PCR-CG."""
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import ensure_store
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"

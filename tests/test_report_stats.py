@@ -357,7 +357,7 @@ def _more(rng, ok: dict[str, np.ndarray], gt: dict[str, SceneGT], frac: float) -
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import ensure_store
 
     root = tmp_path_factory.mktemp("stats")

@@ -100,17 +100,17 @@ def test_git_info_reports_the_checkout():
 def test_every_kind_of_run_gets_the_same_identity_tags(monkeypatch):
     """One function builds the tags a run (pcrcg.pipeline) and a 2D pretraining (pcrcg.pretrain2d)
     carry; the code version is among them."""
-    import pcrcg.tracking.runs as runs
+    import pcrcg.tracking.tracker as tracker
     from pcrcg.tracking.git import code_version
 
-    tags = runs.identity_tags("views", "0123abcd0123abcd", "cpu")
+    tags = tracker.identity_tags("views", "0123abcd0123abcd", "cpu")
     sha, dirty = git_info()
     assert tags == {"experiment": "views", "config_hash": "0123abcd0123abcd", "git_sha": sha,
                     "git_dirty": str(dirty).lower(), "code_version": code_version(), "profile": "cpu",
                     "mlflow.source.git.commit": sha}
-    monkeypatch.setattr(runs, "git_info", lambda: ("e" * 40, True))
-    assert runs.identity_tags("x", "h", "tiny")["git_dirty"] == "true"
-    assert runs.identity_tags("x", "h", "tiny")["mlflow.source.git.commit"] == "e" * 40
+    monkeypatch.setattr(tracker, "git_info", lambda: ("e" * 40, True))
+    assert tracker.identity_tags("x", "h", "tiny")["git_dirty"] == "true"
+    assert tracker.identity_tags("x", "h", "tiny")["mlflow.source.git.commit"] == "e" * 40
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def store(tmp_path_factory):
 
 
 def test_runs_finished_lookup_and_failure_record(store):
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
 
     tr = RunTracker(store, "unit")
     assert tr.find_finished("h1") is None
@@ -168,7 +168,7 @@ def test_experiment_creation_is_idempotent_and_artifacts_sit_beside_the_db(store
 
 
 def _writer(uri: str, k: int, n: int) -> None:
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
 
     tr = RunTracker(uri, "parallel")
     for i in range(n):
@@ -180,7 +180,7 @@ def _writer(uri: str, k: int, n: int) -> None:
 
 def test_parallel_writers_on_one_existing_store(tmp_path):
     """Two processes log into one SQLite store created beforehand: nothing is lost."""
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import client, ensure_experiment, ensure_store
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
@@ -258,12 +258,12 @@ def test_the_code_version_digests_the_code_that_computes_results(tmp_path):
 def _identity_job(tmp_path, monkeypatch, code: str, *overrides: str):
     """A classical run with the fake stages (tests/test_run_support.py) as if made by code version ``code``."""
     import pcrcg.pipeline as pipeline
-    import pcrcg.tracking.runs as runs
+    import pcrcg.tracking.tracker as tracker
     from pcrcg.config import load_run_config
     from test_run_support import FAKES
 
     monkeypatch.setattr(pipeline, "code_version", lambda: code)  # the skip rule's
-    monkeypatch.setattr(runs, "code_version", lambda: code)  # the run's tag (identity_tags)
+    monkeypatch.setattr(tracker, "code_version", lambda: code)  # the run's tag (identity_tags)
     cfg = load_run_config(["profile=tiny", "method=fpfh", "experiment_name=identity", "runtime.report_on_end=false",
                            *FAKES, *overrides])
     n = len(list(tmp_path.glob("out-*")))

@@ -415,7 +415,7 @@ def run_tracked(cfg: Any, base_dir: Path | None = None, log: Callable[[str], Non
     from omegaconf import OmegaConf
 
     from pcrcg.cli import strict_json
-    from pcrcg.tracking.runs import RunTracker
+    from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import resolve_tracking_uri
 
     base = Path(base_dir) if base_dir is not None else Path.cwd()

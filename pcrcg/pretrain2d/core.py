@@ -632,7 +632,7 @@ def _start_tracking(data: Mapping[str, Any], h: str, base: Path, out: Path, log)
     if lookup(data, "logger.name", "none") != "mlflow":
         return None, None
     from pcrcg.tracking.hashing import flatten
-    from pcrcg.tracking.runs import RunTracker, identity_tags
+    from pcrcg.tracking.tracker import RunTracker, identity_tags
     from pcrcg.tracking.store import resolve_tracking_uri
 
     uri = resolve_tracking_uri(lookup(data, "logger.tracking_uri"), base)

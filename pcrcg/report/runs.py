@@ -14,9 +14,9 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
 
     Columns: ``run_id, experiment_id, status, start_time, end_time, experiment`` and MLflow's
     ``metrics.*``, ``params.*``, ``tags.*``. Stale runs (RUNNING, but their process is gone: killed
-    outright, not yet closed by a relaunch; :func:`pcrcg.tracking.runs.is_stale`) are left out.
+    outright, not yet closed by a relaunch; :func:`pcrcg.tracking.tracker.is_stale`) are left out.
     """
-    from pcrcg.tracking.runs import is_stale
+    from pcrcg.tracking.tracker import is_stale
 
     from mlflow.entities import ViewType
 

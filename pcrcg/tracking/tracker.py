@@ -1,4 +1,4 @@
-"""One tracked run in MLflow: find a finished twin, start, log, finish or record a failure.
+"""The run tracker (one tracked run in MLflow): find a finished twin, start, log, finish or record a failure.
 
 Everything goes through an explicit ``MlflowClient`` bound to one store URI (no global
 ``mlflow`` state), so parallel jobs and several stores in one process do not interfere.
