@@ -264,7 +264,7 @@ def _dead_pid() -> int:
 def test_stale_running_runs_are_closed_on_relaunch_and_left_out_of_the_report(tmp_path, monkeypatch):
     from pcrcg.config import load_run_config
     from pcrcg.pipeline import JobInfo, run_job
-    from pcrcg.report.runs import load_runs
+    from pcrcg.report.load import load_runs
     from pcrcg.tracking.hashing import config_hash, to_plain
     from pcrcg.tracking.tracker import TAG_HASH, TAG_PID, RunTracker, owner_tags
     from test_run_support import tracked_runs

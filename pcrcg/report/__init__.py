@@ -29,7 +29,7 @@ from pcrcg.tracking.git import DEFAULT_IDENTITY, IDENTITIES, same_code
 from pcrcg.report.orderings import StatsSettings, check_orderings
 from pcrcg.report.outcomes import OutcomeSource
 from pcrcg.report.render import to_latex, to_markdown, write_csv, write_orderings_csv
-from pcrcg.report.runs import load_runs, newest_profile
+from pcrcg.report.load import load_runs, newest_profile
 from pcrcg.report.spec import TableSpec, parse_specs
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 

@@ -1,4 +1,4 @@
-"""Read tracked runs from an MLflow store into a pandas DataFrame."""
+"""The report's input: the tracked runs of an MLflow store as a pandas DataFrame, and the newest profile."""
 
 from __future__ import annotations
 
