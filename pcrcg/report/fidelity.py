@@ -62,7 +62,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("profile", "profile", "paper", "official",
             {"paper": "profile paper (the paper's text: Predator's sizes, 30 epochs)",
              "official": "profile official (the official training config: 256/512 wide, 64-d, 150 epochs)",
-             "cpu": "profile cpu (6 cm voxels, 3 levels, 32-wide first layer, 300 steps: a CPU-sized model)",
+             "cpu": "profile cpu (6 cm voxels, 3 levels, 32-wide first layer, 1,800 steps: a CPU-sized model)",
              "tiny": "profile tiny (a few training steps: the tests' size)"}),
     Setting("encoder2d.training", "2D network training", "end_to_end", "detached",
             {"detached": "the 2D network detached (not trained)", "end_to_end": "the 2D network trained end to end"},
