@@ -66,20 +66,21 @@ def with_scores(out: Any, src_overlap: np.ndarray, tgt_overlap: np.ndarray, floo
     return dataclasses.replace(out, src=frag(out.src, src_overlap), tgt=frag(out.tgt, tgt_overlap))
 
 
-def score_heads(outs: Sequence[Any], radius: float, module: Any = None) -> dict[str, float]:
-    """Mean AUCs of the overlap and matchability scores over the pairs (both fragments); with ``module``,
-    also the source's overlap AUC when run against another scene's target fragment."""
+def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarray]],
+                module: Any = None) -> dict[str, float]:
+    """Mean AUCs of the overlap and matchability scores over the pairs (both fragments), given each pair's
+    true overlap ``labels`` (:func:`overlap_labels`); with ``module``, also the source's overlap AUC when
+    run against another scene's target fragment."""
+    from scipy.spatial import cKDTree
+
+    from pcrcg.models.train import infer_clouds
+
     ov, mt, swapped = [], [], []
-    for k, o in enumerate(outs):
-        ls, lt = overlap_labels(o.src.points, o.tgt.points, o.transform, radius)
+    for k, (o, (ls, lt)) in enumerate(zip(outs, labels)):
         ov += [auc(o.src.overlap, ls), auc(o.tgt.overlap, lt)]
         mt += [auc(o.src.matchability, ls), auc(o.tgt.matchability, lt)]
         other = next((x for x in list(outs[k + 1:]) + list(outs[:k]) if x.scene != o.scene), None)
         if module is not None and other is not None:
-            from scipy.spatial import cKDTree
-
-            from pcrcg.models.train import infer_clouds
-
             sw = infer_clouds(module, o.src.points, other.tgt.points)
             nearest = cKDTree(o.src.points).query(sw.src.points)[1]  # the run re-voxelises: label by nearest point
             swapped.append(auc(sw.src.overlap, ls[nearest]))
@@ -89,13 +90,14 @@ def score_heads(outs: Sequence[Any], radius: float, module: Any = None) -> dict[
     return res
 
 
-def sampling_variants(outs: Sequence[Any], radius: float) -> dict[str, list]:
-    """The pairs' outputs as the model gives them, with the true overlap as scores, and with flat scores."""
-    oracle, flat = [], []
-    for o in outs:
-        ls, lt = overlap_labels(o.src.points, o.tgt.points, o.transform, radius)
-        oracle.append(with_scores(o, ls, lt))
-        flat.append(with_scores(o, np.ones(len(ls)), np.ones(len(lt))))
+def sampling_variants(outs: Sequence[Any], radius: float,
+                      labels: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, list]:
+    """The pairs' outputs as the model gives them, with the true overlap as scores (``labels``, or computed
+    within ``radius``), and with flat scores."""
+    if labels is None:
+        labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
+    oracle = [with_scores(o, ls, lt) for o, (ls, lt) in zip(outs, labels)]
+    flat = [with_scores(o, np.ones(len(ls)), np.ones(len(lt))) for o, (ls, lt) in zip(outs, labels)]
     return {"model": list(outs), "true overlap (oracle)": oracle, "uniform": flat}
 
 
@@ -122,7 +124,8 @@ def main(argv: list[str] | None = None) -> dict:
     voxel = float(module.hparams["model"]["voxel_size"])
     outs = list(infer(module, args.root, args.benchmark, max_pairs=args.pairs, progress=True))
     radius = args.radius * voxel
-    heads = score_heads(outs, radius, module)
+    labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
+    heads = score_heads(outs, labels, module)
     print(f"{len(outs)} pairs of {args.root} {args.benchmark}; overlap labels within {radius:.3f} m")
     print(f"overlap AUC {heads['overlap_auc']:.3f} (with an unrelated partner: "
           f"{heads.get('overlap_auc_unrelated_partner', float('nan')):.3f}); matchability AUC {heads['matchability_auc']:.3f}")
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> dict:
     bench = f"{args.root}/benchmarks/{args.benchmark}"
     print("sampled by                 " + " ".join(f"RR@{n:<5}" for n in args.n_points) + " counted")
     rows = {}
-    for name, variant in sampling_variants(outs, radius).items():
+    for name, variant in sampling_variants(outs, radius, labels).items():
         m = evaluate_model_outputs(variant, bench, cfg=cfg, only_evaluated=True, progress=False)
         rows[name] = {n: m[f"rr_{n}"] for n in args.n_points}
         print(f"{name:26s} " + " ".join(f"{m[f'rr_{n}']:7.1f}" for n in args.n_points) + f" {m['n_counted']:7.0f}")

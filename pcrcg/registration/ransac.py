@@ -78,8 +78,8 @@ class RansacConfig:
     target instead of the KD-tree and skip hypotheses that can no longer win (:class:`_GridOverlapScore`:
     the same chosen hypothesis; ``False``: score every point of every hypothesis, the reference).
     prune_min_points: only where the grid would be too large (more than ``_GridOverlapScore.MAX_CELLS``
-    cells of ``distance / 2``): the chunked shortcut (:class:`_PrunedOverlapScore`) from this many source points, the
-    reference below. Measured (RANSAC alone, the Open3D 0.10 budget, 8 simulated pairs from the real
+    cells of ``distance / 2``): the chunked shortcut (:class:`_PrunedOverlapScore`) from this many
+    source points, the reference below. Measured (RANSAC alone, the Open3D 0.10 budget, 8 simulated pairs from the real
     redkitchen frames at 2.5 cm x 3 seeds, identical results): N = 5000 29.4 s (chunked) -> 8.0 s (grid),
     N = 1000 6.4 s (reference) -> 3.8 s, N = 250 2.0 s -> 1.6 s.
     """
@@ -451,6 +451,7 @@ class _GridOverlapScore(_PrunedOverlapScore):
             hyp, _, e = self._exact(R, t, top, torch.ones(len(top), states.shape[1], dtype=torch.bool))
             err[top] = np.bincount(hyp, weights=e, minlength=len(top))
         return torch.as_tensor(count), torch.as_tensor(err)
+
 
 def _overlap_scorer(src: np.ndarray, tgt: np.ndarray, cfg: RansacConfig, dtype, dev: torch.device) -> _OverlapScore:
     """The overlap scorer for centred source (N, 3) and target (M, 3) points: with ``cfg.prune`` on CPU the
