@@ -201,3 +201,84 @@ def test_profiles_build_a_model(profile):
         assert t["max_epochs"] >= 30 and t["augment"]["rotation_range_deg"] == 360
     net = build_predator(m, in_dim=1)
     assert net.cfg.num_layers == m["num_layers"] and net.cfg.voxel_size == m["voxel_size"]
+
+
+# --------------------------------------------------------------------------- coarse losses
+
+
+def test_coarse_overlap_labels_are_shares_of_level0_points():
+    from pcrcg.models.losses import coarse_overlap_labels
+
+    fine = torch.tensor([1.0, 0.0, 1.0, 1.0, 0.0, 1.0])
+    assign = torch.tensor([0, 0, 1, 1, 3, 3])  # coarse point 2 has no level-0 point, 3 = none
+    lab, has = coarse_overlap_labels(fine, assign, 3)
+    torch.testing.assert_close(lab, torch.tensor([0.5, 1.0, 0.0]))
+    assert has.tolist() == [True, True, False]
+
+
+def test_coarse_assignment_follows_the_decoder_upsampling(batch):
+    from pcrcg.models.module import coarse_inputs
+
+    net = build_predator(TINY, in_dim=1)
+    n0 = batch.pyramid.points[0].shape[0]
+    with torch.no_grad():
+        out = net(torch.ones(n0, 1), batch.pyramid)
+    co = coarse_inputs(out, batch.pyramid, 0.12)
+    nc = len(batch.pyramid.points[-1])
+    assert co.assign.shape == (n0,) and co.voxel == pytest.approx(0.48)
+    assert out.coarse_logits.shape == (nc,) and out.coarse_feats.shape == (nc, TINY["gnn_dim"])
+    ok = co.assign < nc
+    assert float(ok.float().mean()) > 0.95
+    # source level-0 points go to source coarse points, target to target
+    ns_c = co.n_src
+    assert bool((co.assign[: batch.n_src][ok[: batch.n_src]] < ns_c).all())
+    assert bool((co.assign[batch.n_src:][ok[batch.n_src:]] >= ns_c).all())
+    # a level-0 point is near its coarse point (within two coarse cells)
+    d = (batch.pyramid.points[0][ok] - batch.pyramid.points[-1][co.assign[ok]]).norm(dim=1)
+    assert float(d.max()) < 2 * 0.48
+
+
+def test_coarse_losses_are_off_by_default_and_reach_the_bottleneck(batch):
+    from pcrcg.models.losses import CoarseInputs
+    from pcrcg.models.module import coarse_inputs
+
+    torch.manual_seed(0)
+    n0 = batch.pyramid.points[0].shape[0]
+    cfg = dict(pos_radius=1.5, safe_radius=4.0, overlap_radius=1.5, matchability_radius=2.0, max_points=10**6)
+    off = PredatorLoss(LossConfig(**cfg), voxel_size=0.12)
+    on = PredatorLoss(LossConfig(**cfg, w_coarse_overlap=1.0, w_coarse_circle=1.0), voxel_size=0.12)
+    net = build_predator(TINY, in_dim=1)
+    args = (batch.pyramid.points[0], batch.n_src, batch.transform, batch.corr)
+    out = net(torch.ones(n0, 1), batch.pyramid)
+    co = coarse_inputs(out, batch.pyramid, 0.12)
+    s = on(out.descriptors, out.overlap_logits, out.matchability_logits, *args, coarse=co)
+    base = off(out.descriptors, out.overlap_logits, out.matchability_logits, *args)
+    assert "coarse_overlap_loss" not in base
+    assert float(s["loss"]) == pytest.approx(float(base["loss"] + s["coarse_overlap_loss"]
+                                                   + s["coarse_circle_loss"]), rel=1e-5)
+    with pytest.raises(ValueError, match="w_coarse"):
+        on(out.descriptors, out.overlap_logits, out.matchability_logits, *args)
+    # the coarse terms alone send gradients into the overlap attention and the score projection
+    (s["coarse_overlap_loss"] + s["coarse_circle_loss"]).backward()
+    for p in (net.proj_score.weight, net.proj_gnn.weight, net.bottle.weight):
+        assert float(p.grad.abs().sum()) > 0
+    # and they are minimised by the right outputs: free coarse logits and features, fitted by Adam
+    logits = torch.zeros_like(co.logits, requires_grad=True)
+    feats = torch.randn_like(co.feats).requires_grad_(True)
+    opt = torch.optim.Adam([logits, feats], lr=0.1)
+    first = None
+    for _ in range(60):
+        c = on.coarse_losses(CoarseInputs(logits, feats, co.points, co.n_src, co.assign, co.voxel),
+                             overlap_labels(batch.n_src, n0 - batch.n_src, batch.corr, logits.device), batch.transform)
+        total = c["coarse_overlap_loss"] + c["coarse_circle_loss"]
+        first = float(total) if first is None else first
+        opt.zero_grad()
+        total.backward()
+        opt.step()
+    assert float(total) < 0.3 * first and float(c["coarse_recall"]) > 0.9
+
+
+@pytest.mark.parametrize("key,value", [("w_coarse_overlap", -1.0), ("w_overlap", "a"), ("pos_radius", 0.0)])
+def test_bad_loss_settings_name_the_setting(key, value):
+    with pytest.raises(ConfigError, match=f"model.loss.{key}"):
+        LossConfig(**{key: value})

@@ -19,6 +19,16 @@ Definitions (Predator, CVPR 2021, and its public training code):
 * matchability loss: the same BCE on the overlap points only, label 1 where the point's mutual-feature
   nearest neighbour among the other fragment's overlap points lies within ``matchability_radius``.
 
+Two coarse losses that Predator does not have (weights 0 by default; the cpu profile turns them on,
+``conf/profile/cpu.yaml`` says why): they supervise the bottleneck directly, where the overlap attention
+decides which coarse points the other fragment also sees, instead of only through the decoder:
+
+* coarse overlap loss: the same class-balanced BCE on the bottleneck's overlap logits, the label of a
+  coarse point being the share of its level-0 points (those that the decoder's nearest upsampling gives
+  it) that are in the overlap (a soft label; a coarse point without level-0 points is left out);
+* coarse circle loss: the circle loss on the bottleneck features (L2-normalised), all source x target
+  coarse points, with the radii in voxels of the coarsest level.
+
 All radii are given in metres here; the config gives them in voxel units (see :class:`LossConfig`).
 """
 
@@ -52,6 +62,21 @@ class LossConfig(NodeSettings):
     w_matchability: float = 1.0
     # Predator adds the matchability loss once the validation feature-match recall exceeds this
     matchability_after_recall: float = 0.3
+    # coarse losses on the bottleneck (not Predator's; see the module docstring)
+    w_coarse_overlap: float = 0.0
+    w_coarse_circle: float = 0.0
+
+    def __post_init__(self) -> None:
+        from pcrcg.errors import ConfigError
+
+        for name in ("pos_radius", "safe_radius", "overlap_radius", "matchability_radius", "log_scale"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ConfigError(f"model.loss.{name}", v, "a positive number")
+        for name in ("w_circle", "w_overlap", "w_matchability", "w_coarse_overlap", "w_coarse_circle"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+                raise ConfigError(f"model.loss.{name}", v, "a number >= 0")
 
 
 def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,
@@ -149,6 +174,30 @@ def matchability_labels(src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_desc: 
     return (d1 < radius).float(), (d2 < radius).float()
 
 
+@dataclass
+class CoarseInputs:
+    """What the coarse losses need of a stacked pair: the bottleneck's overlap ``logits`` (Nc,) and
+    ``feats`` (Nc, C), the coarse ``points`` (Nc, 3) (source first, ``n_src`` of them), the coarse point
+    of each level-0 point ``assign`` (N0,) long (Nc where there is none) and the coarsest ``voxel`` (m)."""
+
+    logits: torch.Tensor
+    feats: torch.Tensor
+    points: torch.Tensor
+    n_src: int
+    assign: torch.Tensor
+    voxel: float
+
+
+def coarse_overlap_labels(fine_labels: torch.Tensor, assign: torch.Tensor, n_coarse: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Share of each coarse point's level-0 points in the overlap: fine_labels (N0,) float, assign (N0,)
+    long (``n_coarse`` = none) -> (labels (Nc,) float in [0, 1], has_points (Nc,) bool)."""
+    ok = assign < n_coarse
+    idx, lab = assign[ok], fine_labels[ok]
+    total = torch.zeros(n_coarse, device=fine_labels.device, dtype=lab.dtype).index_add_(0, idx, lab)
+    count = torch.zeros(n_coarse, device=fine_labels.device, dtype=lab.dtype).index_add_(0, idx, torch.ones_like(lab))
+    return total / count.clamp(min=1), count > 0
+
+
 def transform_torch(T: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     """Rigid 4x4 applied to (N, 3) points (torch)."""
     T = T.to(pts.dtype)
@@ -177,8 +226,10 @@ class PredatorLoss(torch.nn.Module):
     def forward(self, descriptors: torch.Tensor, overlap_logits: torch.Tensor, matchability_logits: torch.Tensor,
                 points: torch.Tensor, n_src: int, transform: torch.Tensor, corr: torch.Tensor,
                 w_matchability: float | torch.Tensor = 1.0,
-                generator: torch.Generator | None = None, matchability: bool = True) -> dict[str, torch.Tensor]:
-        """``matchability=False`` skips the matchability labels (an (n x m) descriptor product and two
+                generator: torch.Generator | None = None, matchability: bool = True,
+                coarse: CoarseInputs | None = None) -> dict[str, torch.Tensor]:
+        """``coarse``: the bottleneck's outputs, for the coarse losses (needed when their weights are > 0).
+        ``matchability=False`` skips the matchability labels (an (n x m) descriptor product and two
         arg-maxes over the overlap points; a third of a CPU step) while its loss weight is 0."""
         c = self.cfg
         dev = descriptors.device
@@ -228,4 +279,29 @@ class PredatorLoss(torch.nn.Module):
             stats["recall"] = torch.tensor(0.0, device=dev)
         stats["loss"] = (c.w_circle * stats["circle_loss"] + c.w_overlap * stats["overlap_loss"]
                          + c.w_matchability * w_matchability * stats["matchability_loss"])
+        if c.w_coarse_overlap > 0 or c.w_coarse_circle > 0:
+            if coarse is None:
+                raise ValueError("the coarse losses are on (model.loss.w_coarse_*) but no coarse outputs were given")
+            stats.update(self.coarse_losses(coarse, ov_lab, transform))
+            stats["loss"] = (stats["loss"] + c.w_coarse_overlap * stats["coarse_overlap_loss"]
+                             + c.w_coarse_circle * stats["coarse_circle_loss"])
         return stats
+
+    def coarse_losses(self, co: CoarseInputs, fine_labels: torch.Tensor, transform: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The coarse overlap BCE and coarse circle loss (module docstring) -> dict of scalars
+        (``coarse_overlap_loss``, ``coarse_circle_loss``, ``coarse_recall``)."""
+        c = self.cfg
+        n_c = len(co.points)
+        lab, has = coarse_overlap_labels(fine_labels.to(co.logits.dtype), co.assign, n_c)
+        out = {"coarse_overlap_loss": weighted_bce(co.logits[has], lab[has])}
+        src = transform_torch(transform, co.points[: co.n_src])
+        tgt = co.points[co.n_src:]
+        coords_dist = torch.cdist(src, tgt)
+        fn = F.normalize(co.feats, p=2, dim=1)
+        fd2 = 2.0 - 2.0 * fn[: co.n_src] @ fn[co.n_src:].t()
+        feats_dist = torch.sqrt(torch.clamp(fd2, min=1e-12))
+        pos_r, safe_r = c.pos_radius * co.voxel, c.safe_radius * co.voxel
+        out["coarse_circle_loss"] = circle_loss(coords_dist, feats_dist, pos_r, safe_r, c.pos_margin, c.neg_margin,
+                                                c.pos_optimal, c.neg_optimal, c.log_scale)
+        out["coarse_recall"] = descriptor_hit_rate(coords_dist, feats_dist.detach(), pos_r)
+        return out

@@ -35,7 +35,7 @@ from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
 from pcrcg.models.fields import known_fields
-from pcrcg.models.losses import LossConfig, PredatorLoss
+from pcrcg.models.losses import CoarseInputs, LossConfig, PredatorLoss
 from pcrcg.models.predator import build_predator
 from pcrcg.registration.feature_registration import FragmentOutput
 
@@ -44,7 +44,23 @@ STAT_KEYS = ("loss", "circle_loss", "overlap_loss", "matchability_loss", "recall
              # model=geotransformer (its coarse loss is the circle_loss)
              "point_matching_loss", "superpoint_precision", "point_precision",
              # model=cofinet (its coarse loss is also logged as circle_loss, the checkpoint monitor)
-             "coarse_matching_loss", "fine_matching_loss", "coarse_precision", "fine_precision")
+             "coarse_matching_loss", "fine_matching_loss", "coarse_precision", "fine_precision",
+             # Predator's optional coarse losses (model.loss.w_coarse_*)
+             "coarse_overlap_loss", "coarse_circle_loss", "coarse_recall")
+
+
+def coarse_inputs(out: Any, pyr: Any, voxel_size: float) -> CoarseInputs:
+    """The coarse-loss inputs of a Predator output on a stacked pyramid: each level-0 point's coarse point
+    follows the decoder's nearest-upsampling indices level by level (the padding index stays padding)."""
+    levels = len(pyr.points)
+    assign = torch.arange(len(pyr.points[0]), device=pyr.points[0].device)
+    for lv in range(levels - 1):
+        n_next = len(pyr.points[lv + 1])
+        up = torch.cat([pyr.upsamples[lv][:, 0], pyr.upsamples[lv].new_full((1,), n_next)])
+        assign = up[assign.clamp(max=len(up) - 1)]
+    n_src, _ = pyr.split(levels - 1)
+    return CoarseInputs(out.coarse_logits, out.coarse_feats, pyr.points[-1], n_src, assign,
+                        voxel_size * 2 ** (levels - 1))
 MODELS = ("predator", "geotransformer", "cofinet")
 
 
@@ -251,9 +267,13 @@ class PCRCGModule(L.LightningModule):
                 return cofinet_loss(out, batch.transform, batch.corr, self.net.cfg)
         # in training, the matchability labels are only computed while their loss is on
         need = (not self.training) or (self.loss_cfg.w_matchability > 0 and bool(self.matchability_gate > 0))
+        coarse = None
+        if self.loss_cfg.w_coarse_overlap > 0 or self.loss_cfg.w_coarse_circle > 0:
+            coarse = coarse_inputs(out, batch.pyramid, float(self.net.cfg.voxel_size))
         with record_function("pcrcg.losses"):
             return self.criterion(out.descriptors, out.overlap_logits, out.matchability_logits, batch.pyramid.points[0],
-                                  batch.n_src, batch.transform, batch.corr, self.matchability_gate, matchability=need)
+                                  batch.n_src, batch.transform, batch.corr, self.matchability_gate, matchability=need,
+                                  coarse=coarse)
 
     # ------------------------------------------------------------------ steps
     def training_step(self, batch: PairBatch, batch_idx: int):

@@ -80,6 +80,10 @@ class PredatorOutput:
     matchability: torch.Tensor
     overlap_logits: torch.Tensor
     matchability_logits: torch.Tensor
+    # the bottleneck's own outputs, per coarse point of the stacked pair: overlap logit (Nc,) and the
+    # features whose similarity carries the scores across (Nc, gnn_dim), unnormalised (coarse losses)
+    coarse_logits: torch.Tensor | None = None
+    coarse_feats: torch.Tensor | None = None
 
 
 # --------------------------------------------------------------------------- attention
@@ -217,6 +221,8 @@ class Predator(nn.Module):
             x, skips = run_encoder(self.encoder, self.layout, feats, pyr)
         with record_function("pcrcg.attention (overlap attention)"):
             x, ns = self._bottleneck(x, pyr)
+        g = self.cfg.gnn_dim
+        coarse_logits, coarse_feats = x[:, 0], x[:, 2:2 + g]
         with record_function("pcrcg.decoder"):
             for block in self.decoder:
                 if isinstance(block, NearestUpsampleBlock):
@@ -227,7 +233,8 @@ class Predator(nn.Module):
         d = self.cfg.final_dim
         desc = F.normalize(x[:, :d], p=2, dim=1)
         ov_logit, m_logit = x[:, d], x[:, d + 1]
-        return PredatorOutput(desc, torch.sigmoid(ov_logit), torch.sigmoid(m_logit), ov_logit, m_logit)
+        return PredatorOutput(desc, torch.sigmoid(ov_logit), torch.sigmoid(m_logit), ov_logit, m_logit,
+                              coarse_logits, coarse_feats)
 
     def _bottleneck(self, x: torch.Tensor, pyr: TensorPyramid) -> tuple[torch.Tensor, int]:
         """Overlap attention between the two fragments' coarse points -> (Nc, g + 2), n_src coarse."""
