@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from pcrcg.benchmarks.overlap import auc, overlap_labels, sampling_variants, with_scores
+from pcrcg.benchmarks.overlap import auc, descriptor_agreement, overlap_labels, sampling_variants, with_scores
 from pcrcg.geometry import make_transform
 from pcrcg.models.module import PairOutput
 from pcrcg.registration.feature_registration import FragmentOutput
@@ -65,3 +65,27 @@ def test_missing_checkpoint_is_one_line_and_exit_2(tmp_path):
     lines = [x for x in proc.stderr.splitlines() if x.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith("pcrcg.benchmarks.overlap: error: ") and str(missing) in lines[0]
+
+
+def test_descriptor_agreement_scores_points_with_a_partner_higher():
+    rng = np.random.default_rng(1)
+    shared = rng.normal(size=(30, 16))
+    src = np.concatenate([shared, rng.normal(size=(50, 16))])  # 30 with a partner, 50 without
+    tgt = np.concatenate([shared[::-1] + 0.01 * rng.normal(size=(30, 16)), rng.normal(size=(40, 16))])
+    src = (src / np.linalg.norm(src, axis=1, keepdims=True)).astype(np.float32)
+    tgt = (tgt / np.linalg.norm(tgt, axis=1, keepdims=True)).astype(np.float32)
+    ag = descriptor_agreement(src, tgt, chunk=7)  # chunks that do not divide the rows
+    truth_s, truth_t = np.arange(80) < 30, np.arange(70) < 30
+    for name in ("similarity", "ratio"):
+        s, t = ag[name]
+        assert s.shape == (80,) and t.shape == (70,)
+        assert auc(s, truth_s) == 1.0 and auc(t, truth_t) == 1.0, name
+    s, _ = ag["similarity"]
+    assert np.allclose(s[:30], (1 + (src[:30] @ tgt.T).max(1)) / 2) and s.max() <= 1.0 + 1e-6
+    r, _ = ag["ratio"]
+    assert (r >= 0).all() and (r <= 1).all() and r[:30].min() > 0.8  # a near-copy is far nearer than the next
+    p = _pair()
+    ag = descriptor_agreement(p.src.descriptors, p.tgt.descriptors)
+    v = sampling_variants([p], radius=0.05, agreement=[ag])
+    assert {"descriptor similarity", "descriptor ratio"} <= set(v)
+    assert np.allclose(v["descriptor ratio"][0].src.overlap, np.maximum(ag["ratio"][0], 1e-3))

@@ -12,7 +12,9 @@ On ``--pairs`` pairs of a test benchmark (spread evenly), from the model's outpu
   the other fragment, which is what Predator's overlap attention is for.
 * **Registration recall** at N = 5000 / 1000 / 250 (the run's protocol: Open3D 0.10's RANSAC budget,
   ``--distance`` voxels) with the points sampled by the model's overlap x matchability, by the true
-  overlap (an oracle: what a perfect overlap head would give with the same descriptors), and uniformly.
+  overlap (an oracle: what a perfect overlap head would give with the same descriptors), uniformly, and
+  by two scores read off the descriptors alone (no head; their AUCs too): each point's best cosine
+  similarity to the other fragment, and Lowe's ratio of its two nearest descriptors there.
 
 For models with per-point overlap scores (Predator). Prints figures; asserts nothing. Measured 2026-12-02 (geometry-only Predator, cpu profile, seed 0, 150
 3DLoMatch pairs of generator v6): overlap AUC 0.60 (0.55 with an unrelated partner; 0.69 on training
@@ -90,15 +92,45 @@ def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarr
     return res
 
 
+def descriptor_agreement(src_desc: np.ndarray, tgt_desc: np.ndarray, chunk: int = 2048) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Scores of "has a partner in the other fragment" read off the descriptors alone (no head): src_desc
+    (N, D), tgt_desc (M, D), unit norm -> {"similarity": best cosine similarity to the other fragment
+    mapped to [0, 1], "ratio": 1 - d1 / d2 of the two nearest descriptors (Lowe's ratio, 0 when the two
+    are as near)}, each a pair of arrays (N,), (M,)."""
+
+    def one_way(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sim, ratio = np.zeros(len(a), np.float32), np.zeros(len(a), np.float32)
+        if len(b) < 2:
+            return sim, ratio
+        for k in range(0, len(a), chunk):
+            s = a[k:k + chunk] @ b.T  # (n, M)
+            top = -np.partition(-s, 1, axis=1)[:, :2]  # the two best similarities, unordered
+            s1, s2 = top.max(1), top.min(1)
+            d1 = np.sqrt(np.clip(2.0 - 2.0 * s1, 0.0, None))
+            d2 = np.sqrt(np.clip(2.0 - 2.0 * s2, 1e-12, None))
+            sim[k:k + chunk] = (1.0 + s1) / 2.0
+            ratio[k:k + chunk] = 1.0 - d1 / d2
+        return sim, ratio
+
+    a, b = np.asarray(src_desc, np.float32), np.asarray(tgt_desc, np.float32)
+    (ss, sr), (ts, tr) = one_way(a, b), one_way(b, a)
+    return {"similarity": (ss, ts), "ratio": (sr, tr)}
+
+
 def sampling_variants(outs: Sequence[Any], radius: float,
-                      labels: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, list]:
+                      labels: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+                      agreement: Sequence[dict[str, tuple[np.ndarray, np.ndarray]]] | None = None) -> dict[str, list]:
     """The pairs' outputs as the model gives them, with the true overlap as scores (``labels``, or computed
-    within ``radius``), and with flat scores."""
+    within ``radius``), with flat scores, and (given ``agreement``, :func:`descriptor_agreement` per pair)
+    with each descriptor score in place of the heads'."""
     if labels is None:
         labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
     oracle = [with_scores(o, ls, lt) for o, (ls, lt) in zip(outs, labels)]
     flat = [with_scores(o, np.ones(len(ls)), np.ones(len(lt))) for o, (ls, lt) in zip(outs, labels)]
-    return {"model": list(outs), "true overlap (oracle)": oracle, "uniform": flat}
+    res = {"model": list(outs), "true overlap (oracle)": oracle, "uniform": flat}
+    for name in (agreement[0] if agreement else {}):
+        res[f"descriptor {name}"] = [with_scores(o, *ag[name]) for o, ag in zip(outs, agreement)]
+    return res
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -126,15 +158,22 @@ def main(argv: list[str] | None = None) -> dict:
     radius = args.radius * voxel
     labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
     heads = score_heads(outs, labels, module)
+    agreement = [descriptor_agreement(o.src.descriptors, o.tgt.descriptors) for o in outs]
+    for name in agreement[0]:
+        heads[f"descriptor_{name}_auc"] = float(np.nanmean(
+            [auc(ag[name][0], ls) for ag, (ls, _) in zip(agreement, labels)]
+            + [auc(ag[name][1], lt) for ag, (_, lt) in zip(agreement, labels)]))
     print(f"{len(outs)} pairs of {args.root} {args.benchmark}; overlap labels within {radius:.3f} m")
     print(f"overlap AUC {heads['overlap_auc']:.3f} (with an unrelated partner: "
           f"{heads.get('overlap_auc_unrelated_partner', float('nan')):.3f}); matchability AUC {heads['matchability_auc']:.3f}")
+    print("AUC of the descriptors' own agreement (no head): "
+          + "; ".join(f"{n} {heads[f'descriptor_{n}_auc']:.3f}" for n in agreement[0]))
     cfg = RegistrationConfig(fewer_points="with_replacement", n_points=tuple(args.n_points),
                              ransac=RansacConfig(distance=args.distance * voxel, max_validation=1000, confidence=1.0))
     bench = f"{args.root}/benchmarks/{args.benchmark}"
     print("sampled by                 " + " ".join(f"RR@{n:<5}" for n in args.n_points) + " counted")
     rows = {}
-    for name, variant in sampling_variants(outs, radius, labels).items():
+    for name, variant in sampling_variants(outs, radius, labels, agreement).items():
         m = evaluate_model_outputs(variant, bench, cfg=cfg, only_evaluated=True, progress=False)
         rows[name] = {n: m[f"rr_{n}"] for n in args.n_points}
         print(f"{name:26s} " + " ".join(f"{m[f'rr_{n}']:7.1f}" for n in args.n_points) + f" {m['n_counted']:7.0f}")
