@@ -53,7 +53,9 @@ def test_with_scores_and_the_oracle_variant():
     assert np.array_equal(q.src.descriptors, p.src.descriptors) and (q.scene, q.i, q.j) == (p.scene, p.i, p.j)
     assert p.src.overlap.max() < 1.0  # the original is untouched
     v = sampling_variants([p], radius=0.05)
-    assert set(v) == {"model", "true overlap (oracle)", "uniform"} and v["model"][0] is p
+    assert set(v) == {"model", "overlap head alone", "true overlap (oracle)", "uniform"} and v["model"][0] is p
+    assert np.allclose(v["overlap head alone"][0].src.overlap, np.maximum(p.src.overlap, 1e-3))
+    assert (v["overlap head alone"][0].src.matchability == 1).all()
     ls, _ = overlap_labels(p.src.points, p.tgt.points, p.transform, 0.05)
     assert np.array_equal(v["true overlap (oracle)"][0].src.overlap > 0.5, ls)
     assert (v["uniform"][0].tgt.overlap == 1).all()

@@ -12,7 +12,8 @@ On ``--pairs`` pairs of a test benchmark (spread evenly), from the model's outpu
   the other fragment, which is what Predator's overlap attention is for.
 * **Registration recall** at N = 5000 / 1000 / 250 (the run's protocol: Open3D 0.10's RANSAC budget,
   ``--distance`` voxels) with the points sampled by the model's overlap x matchability, by the true
-  overlap (an oracle: what a perfect overlap head would give with the same descriptors), uniformly, and
+  overlap (an oracle: what a perfect overlap head would give with the same descriptors), by the overlap
+  head alone (matchability left out: its loss is gated on the descriptors' hit rate), uniformly, and
   by two scores read off the descriptors alone (no head; their AUCs too): each point's best cosine
   similarity to the other fragment, and Lowe's ratio of its two nearest descriptors there.
 
@@ -120,14 +121,16 @@ def descriptor_agreement(src_desc: np.ndarray, tgt_desc: np.ndarray, chunk: int 
 def sampling_variants(outs: Sequence[Any], radius: float,
                       labels: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
                       agreement: Sequence[dict[str, tuple[np.ndarray, np.ndarray]]] | None = None) -> dict[str, list]:
-    """The pairs' outputs as the model gives them, with the true overlap as scores (``labels``, or computed
+    """The pairs' outputs as the model gives them, with the overlap head's scores alone (matchability 1),
+    with the true overlap as scores (``labels``, or computed
     within ``radius``), with flat scores, and (given ``agreement``, :func:`descriptor_agreement` per pair)
     with each descriptor score in place of the heads'."""
     if labels is None:
         labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
     oracle = [with_scores(o, ls, lt) for o, (ls, lt) in zip(outs, labels)]
     flat = [with_scores(o, np.ones(len(ls)), np.ones(len(lt))) for o, (ls, lt) in zip(outs, labels)]
-    res = {"model": list(outs), "true overlap (oracle)": oracle, "uniform": flat}
+    overlap_only = [with_scores(o, o.src.overlap, o.tgt.overlap) for o in outs]
+    res = {"model": list(outs), "overlap head alone": overlap_only, "true overlap (oracle)": oracle, "uniform": flat}
     for name in (agreement[0] if agreement else {}):
         res[f"descriptor {name}"] = [with_scores(o, *ag[name]) for o, ag in zip(outs, agreement)]
     return res
