@@ -72,8 +72,8 @@ def with_scores(out: Any, src_overlap: np.ndarray, tgt_overlap: np.ndarray, floo
 def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarray]],
                 module: Any = None) -> dict[str, float]:
     """Mean AUCs of the overlap and matchability scores over the pairs (both fragments), given each pair's
-    true overlap ``labels`` (:func:`overlap_labels`); with ``module``, also the source's overlap AUC when
-    run against another scene's target fragment."""
+    true overlap ``labels`` (:func:`overlap_labels`); with ``module`` (geometry only), also the source's
+    overlap AUC when run against another scene's target fragment."""
     from scipy.spatial import cKDTree
 
     from pcrcg.models.train import infer_clouds
@@ -83,7 +83,8 @@ def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarr
         ov += [auc(o.src.overlap, ls), auc(o.tgt.overlap, lt)]
         mt += [auc(o.src.matchability, ls), auc(o.tgt.matchability, lt)]
         other = next((x for x in list(outs[k + 1:]) + list(outs[:k]) if x.scene != o.scene), None)
-        if module is not None and other is not None:
+        # a color model needs the partner's views, which the outputs do not carry: no swapped row for it
+        if module is not None and other is not None and getattr(module, "lifter", None) is None:
             sw = infer_clouds(module, o.src.points, other.tgt.points)
             nearest = cKDTree(o.src.points).query(sw.src.points)[1]  # the run re-voxelises: label by nearest point
             swapped.append(auc(sw.src.overlap, ls[nearest]))
