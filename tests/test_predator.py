@@ -20,7 +20,7 @@ from pcrcg.models.losses import (
     overlap_labels,
     weighted_bce,
 )
-from pcrcg.models.predator import Predator, PredatorConfig, build_predator, knn_indices
+from pcrcg.models.predator import CrossAttention, Predator, PredatorConfig, build_predator, knn_indices
 from pcrcg.models.toy import toy_pair
 
 TINY = dict(voxel_size=0.12, num_layers=3, first_dim=16, final_dim=8, gnn_dim=16, num_heads=2, dgcnn_k=4)
@@ -201,6 +201,42 @@ def test_profiles_build_a_model(profile):
         assert t["max_epochs"] >= 30 and t["augment"]["rotation_range_deg"] == 360
     net = build_predator(m, in_dim=1)
     assert net.cfg.num_layers == m["num_layers"] and net.cfg.voxel_size == m["voxel_size"]
+
+
+# --------------------------------------------------------------------------- match strength
+
+
+def test_cross_strength_reads_how_well_a_point_matches():
+    torch.manual_seed(0)
+    att = CrossAttention(8, 2, strength=True)
+    assert att.mlp1.in_features == 2 * 8 + 2 and CrossAttention(8, 2).mlp1.in_features == 16
+    with torch.no_grad():  # queries and keys = the features themselves, so similarity is their dot product
+        for lin in (att.q, att.k):
+            lin.weight.copy_(torch.eye(8))
+            lin.bias.zero_()
+    seen = []
+    att.mlp1.register_forward_hook(lambda mod, inp, out: seen.append(inp[0].detach()))
+    other = torch.nn.functional.normalize(torch.randn(20, 8), dim=1) * 3
+    x = torch.stack([other[4], -other[4], torch.zeros(8)])  # matches a point there, its opposite, nothing
+    out = att(x, other)
+    strength = seen[-1][:, 16:]  # (3, heads)
+    q = x.view(3, 2, 4).transpose(0, 1)
+    k = other.view(20, 2, 4).transpose(0, 1)
+    expected = (torch.logsumexp(q @ k.transpose(1, 2) / 2.0, -1) - math.log(20)).t()
+    torch.testing.assert_close(strength, expected)
+    assert (strength[0] > strength[1]).all() and torch.allclose(strength[2], torch.zeros(2))
+    assert out.shape == (3, 8)
+    out.sum().backward()
+    assert att.q.weight.grad is not None and float(att.q.weight.grad.abs().sum()) > 0  # the strength trains q
+
+
+def test_cross_strength_is_a_model_setting(batch):
+    torch.manual_seed(0)
+    net = build_predator({**TINY, "cross_strength": True}, in_dim=1)
+    assert net.cfg.cross_strength and all(layer.strength for layer in net.gnn.layers if isinstance(layer, CrossAttention))
+    assert not any(getattr(layer, "strength", False) for layer in build_predator(TINY, in_dim=1).gnn.layers)
+    out = net(torch.ones(batch.pyramid.points[0].shape[0], 1), batch.pyramid)
+    assert torch.isfinite(out.overlap_logits).all()
 
 
 # --------------------------------------------------------------------------- coarse losses

@@ -16,6 +16,7 @@ The input width ``in_dim`` is the only thing PCR-CG changes: 1 (a constant) + th
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -47,6 +48,9 @@ class PredatorConfig(KPConvSettings):
     num_heads: int = 4
     dgcnn_k: int = 10
     attention: Sequence[str] = field(default_factory=lambda: ("self", "cross", "self"))
+    # not Predator's: each cross layer's MLP also reads how strongly a point matches the other fragment
+    # (per head, the log-mean-exp of its attention logits there; :class:`CrossAttention`)
+    cross_strength: bool = False
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], **overrides: Any) -> "PredatorConfig":
@@ -131,16 +135,22 @@ class SelfAttentionGraph(nn.Module):
 
 
 class CrossAttention(nn.Module):
-    """Multi-head attention of one fragment's points to the other's, then an MLP on [x, message]."""
+    """Multi-head attention of one fragment's points to the other's, then an MLP on [x, message].
 
-    def __init__(self, dim: int, num_heads: int):
+    The softmax normalises the attention weights, so the message says what a point sees in the other
+    fragment but not how well it matches there. With ``strength`` the MLP also reads, per head, the
+    log-mean-exp of the point's attention logits over the other fragment (a soft maximum similarity, 0 for
+    a point as similar to everything as to the mean): [x, message, strength] (not Predator's)."""
+
+    def __init__(self, dim: int, num_heads: int, strength: bool = False):
         super().__init__()
         self.h = num_heads
+        self.strength = bool(strength)
         self.q = nn.Linear(dim, dim)
         self.k = nn.Linear(dim, dim)
         self.v = nn.Linear(dim, dim)
         self.merge = nn.Linear(dim, dim)
-        self.mlp1 = nn.Linear(2 * dim, 2 * dim)
+        self.mlp1 = nn.Linear(2 * dim + (num_heads if strength else 0), 2 * dim)
         self.norm = PointNorm(2 * dim)
         self.mlp2 = nn.Linear(2 * dim, dim)
         nn.init.zeros_(self.mlp2.bias)
@@ -152,19 +162,25 @@ class CrossAttention(nn.Module):
         q = self.q(x).view(n, self.h, d).transpose(0, 1)  # (h, N, d)
         k = self.k(source).view(-1, self.h, d).transpose(0, 1)  # (h, M, d)
         v = self.v(source).view(-1, self.h, d).transpose(0, 1)
-        attn = torch.softmax(q @ k.transpose(1, 2) / d**0.5, dim=-1)  # (h, N, M)
+        logits = q @ k.transpose(1, 2) / d**0.5  # (h, N, M)
+        attn = torch.softmax(logits, dim=-1)
         msg = self.merge((attn @ v).transpose(0, 1).reshape(n, c))
-        return self.mlp2(F.relu(self.norm(self.mlp1(torch.cat([x, msg], dim=-1)))))
+        parts = [x, msg]
+        if self.strength:
+            m = logits.shape[-1]
+            parts.append((torch.logsumexp(logits, dim=-1) - math.log(max(m, 1))).transpose(0, 1))  # (N, h)
+        return self.mlp2(F.relu(self.norm(self.mlp1(torch.cat(parts, dim=-1)))))
 
 
 class OverlapAttention(nn.Module):
     """The bottleneck graph network: a sequence of ``self`` / ``cross`` layers over both fragments."""
 
-    def __init__(self, dim: int, num_heads: int, k: int, layers: Sequence[str]):
+    def __init__(self, dim: int, num_heads: int, k: int, layers: Sequence[str], cross_strength: bool = False):
         super().__init__()
         self.names = list(layers)
         self.layers = nn.ModuleList(
-            [CrossAttention(dim, num_heads) if n == "cross" else SelfAttentionGraph(dim, k) for n in self.names]
+            [CrossAttention(dim, num_heads, cross_strength) if n == "cross" else SelfAttentionGraph(dim, k)
+             for n in self.names]
         )
 
     def forward(self, src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src: torch.Tensor,
@@ -196,7 +212,7 @@ class Predator(nn.Module):
 
         g = cfg.gnn_dim
         self.bottle = nn.Linear(dims[-1], g)
-        self.gnn = OverlapAttention(g, cfg.num_heads, cfg.dgcnn_k, cfg.attention)
+        self.gnn = OverlapAttention(g, cfg.num_heads, cfg.dgcnn_k, cfg.attention, cfg.cross_strength)
         self.proj_gnn = nn.Linear(g, g)
         self.proj_score = nn.Linear(g, 1)
         self.epsilon = nn.Parameter(torch.tensor(-5.0))
