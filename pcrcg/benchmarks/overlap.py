@@ -82,6 +82,11 @@ def with_scores(out: Any, src_overlap: np.ndarray, tgt_overlap: np.ndarray, floo
     return dataclasses.replace(out, src=frag(out.src, src_overlap), tgt=frag(out.tgt, tgt_overlap))
 
 
+def mean_auc(scores: Sequence[tuple[np.ndarray, np.ndarray]], labels: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Mean :func:`auc` over the pairs' two fragments: scores and labels, per pair, (N,) and (M,) arrays."""
+    return float(np.nanmean([auc(sc, lb) for sp, lp in zip(scores, labels) for sc, lb in zip(sp, lp)]))
+
+
 def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarray]],
                 module: Any = None) -> dict[str, float]:
     """Mean AUCs of the overlap and matchability scores over the pairs (both fragments), given each pair's
@@ -91,17 +96,16 @@ def score_heads(outs: Sequence[Any], labels: Sequence[tuple[np.ndarray, np.ndarr
 
     from pcrcg.models.train import infer_clouds
 
-    ov, mt, swapped = [], [], []
-    for k, (o, (ls, lt)) in enumerate(zip(outs, labels)):
-        ov += [auc(o.src.overlap, ls), auc(o.tgt.overlap, lt)]
-        mt += [auc(o.src.matchability, ls), auc(o.tgt.matchability, lt)]
+    swapped = []
+    for k, (o, (ls, _)) in enumerate(zip(outs, labels)):
         other = next((x for x in list(outs[k + 1:]) + list(outs[:k]) if x.scene != o.scene), None)
         # a color model needs the partner's views, which the outputs do not carry: no swapped row for it
         if module is not None and other is not None and getattr(module, "lifter", None) is None:
             sw = infer_clouds(module, o.src.points, other.tgt.points)
             nearest = cKDTree(o.src.points).query(sw.src.points)[1]  # the run re-voxelises: label by nearest point
             swapped.append(auc(sw.src.overlap, ls[nearest]))
-    res = {"overlap_auc": float(np.nanmean(ov)), "matchability_auc": float(np.nanmean(mt))}
+    res = {"overlap_auc": mean_auc([(o.src.overlap, o.tgt.overlap) for o in outs], labels),
+           "matchability_auc": mean_auc([(o.src.matchability, o.tgt.matchability) for o in outs], labels)}
     if swapped:
         res["overlap_auc_unrelated_partner"] = float(np.nanmean(swapped))
     return res
@@ -136,8 +140,7 @@ def sampling_variants(outs: Sequence[Any], radius: float,
                       labels: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
                       agreement: Sequence[dict[str, tuple[np.ndarray, np.ndarray]]] | None = None) -> dict[str, list]:
     """The pairs' outputs as the model gives them, with the overlap head's scores alone (matchability 1),
-    with the true overlap as scores (``labels``, or computed
-    within ``radius``), with flat scores, and (given ``agreement``, :func:`descriptor_agreement` per pair)
+    with the true overlap as scores (``labels``, or computed within ``radius``), with flat scores, and (given ``agreement``, :func:`descriptor_agreement` per pair)
     with each descriptor score in place of the heads'."""
     if labels is None:
         labels = [overlap_labels(o.src.points, o.tgt.points, o.transform, radius) for o in outs]
@@ -177,9 +180,7 @@ def main(argv: list[str] | None = None) -> dict:
     heads = score_heads(outs, labels, module)
     agreement = [descriptor_agreement(o.src.descriptors, o.tgt.descriptors) for o in outs]
     for name in agreement[0]:
-        heads[f"descriptor_{name}_auc"] = float(np.nanmean(
-            [auc(ag[name][0], ls) for ag, (ls, _) in zip(agreement, labels)]
-            + [auc(ag[name][1], lt) for ag, (_, lt) in zip(agreement, labels)]))
+        heads[f"descriptor_{name}_auc"] = mean_auc([ag[name] for ag in agreement], labels)
     print(f"{len(outs)} pairs of {args.root} {args.benchmark}; overlap labels within {radius:.3f} m")
     print(f"overlap AUC {heads['overlap_auc']:.3f} (with an unrelated partner: "
           f"{heads.get('overlap_auc_unrelated_partner', float('nan')):.3f}); matchability AUC {heads['matchability_auc']:.3f}")
