@@ -8,7 +8,15 @@ import sys
 import numpy as np
 import pytest
 
-from pcrcg.benchmarks.overlap import auc, descriptor_agreement, overlap_labels, sampling_variants, with_scores
+from pcrcg.benchmarks.overlap import (
+    auc,
+    cue_table,
+    descriptor_agreement,
+    overlap_labels,
+    sampling_variants,
+    single_fragment_cues,
+    with_scores,
+)
 from pcrcg.geometry import make_transform
 from pcrcg.models.module import PairOutput
 from pcrcg.registration.feature_registration import FragmentOutput
@@ -91,3 +99,22 @@ def test_descriptor_agreement_scores_points_with_a_partner_higher():
     v = sampling_variants([p], radius=0.05, agreement=[ag])
     assert {"descriptor similarity", "descriptor ratio"} <= set(v)
     assert np.allclose(v["descriptor ratio"][0].src.overlap, np.maximum(ag["ratio"][0], 1e-3))
+
+
+def test_single_fragment_cues_and_their_table():
+    pts = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [3.0, 0.0, 4.0], [0.0, -1.0, 1.0]])
+    c = single_fragment_cues(pts)
+    assert set(c) == {"periphery", "camera y (down)", "range", "depth"}
+    assert np.allclose(c["range"], [1.0, np.sqrt(2), 5.0, np.sqrt(2)])
+    assert np.allclose(c["camera y (down)"], pts[:, 1]) and np.allclose(c["depth"], pts[:, 2])
+    assert np.allclose(c["periphery"], np.linalg.norm(pts - [0.75, 0.0, 1.75], axis=1))
+    # the half-overlapping grids: the source's overlap is its x > 0.95 half, the target's its x < 0.95 half;
+    # a head scoring by x - mean(x) follows neither y (flat) nor periphery (symmetric) and is 1 / 0 against truth
+    p = _pair()
+    xs, xt = p.src.points[:, 0], p.tgt.points[:, 0]
+    q = with_scores(p, (xs - xs.min()) / np.ptp(xs), (xt - xt.min()) / np.ptp(xt))
+    labels = [overlap_labels(p.src.points, p.tgt.points, p.transform, 0.05)]
+    t = cue_table([q], labels)
+    assert t["periphery"][0] == pytest.approx(0.5) and abs(t["periphery"][1]) < 0.01  # symmetric about the middle
+    assert np.isnan(t["depth"][1])  # z is 0 everywhere: no correlation
+    assert t["range"][1] > 0.8  # range grows with x on these grids, as the head's scores do
