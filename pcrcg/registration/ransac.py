@@ -26,7 +26,11 @@ The best hypothesis is returned as is (no refit on its inliers).
   double, so easy pairs stop after a few hundred hypotheses, as Open3D does).
 
 Everything runs in torch on the given ``device``. Sampling uses a NumPy generator seeded by the
-caller, so a given seed gives the same result on every run.
+caller, so a given seed gives the same result on every run. On CPU (``ransac(..., fast=True)``, the
+default) the edge-length check runs in NumPy (one edge at a time, on the samples still standing: with
+Open3D's early exit most of the ~50,000 draws of a hard pair are checked and fewer than 1 % pass) and the
+fit with fewer tensor operations; both give what the torch path gives, bit for bit (``fast=False``, the
+path of other devices).
 
 Predator's numbers were produced with Open3D 0.10, whose feature-matching RANSAC matched a
 source point's descriptor lazily inside the loop, scored by the same geometric fitness and
@@ -267,6 +271,16 @@ class _OverlapScore:
         return inl.sum(1).to(self.device), d2.sum(1).to(self.device)
 
 
+def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(a, axis=0, return_counts=True)`` for a (n, 3), the same rows in the same (lexicographic)
+    order, with one lexsort of the columns instead of a sort of a structured view (several times faster)."""
+    s = a[np.lexsort(a.T[::-1])]
+    new = np.ones(len(s), dtype=bool)
+    np.any(s[1:] != s[:-1], axis=1, out=new[1:])
+    start = np.flatnonzero(new)
+    return s[start], np.diff(np.append(start, len(s)))
+
+
 class _PrunedOverlapScore(_OverlapScore):
     """The same score with two exact shortcuts (CPU only; same counts for every hypothesis that can
     still be chosen, so the same chosen hypothesis):
@@ -287,12 +301,12 @@ class _PrunedOverlapScore(_OverlapScore):
 
         self.distance = distance
         self.device = device
-        uniq, counts = np.unique(np.asarray(src), axis=0, return_counts=True)
+        uniq, counts = _unique_rows(np.asarray(src))
         order = np.random.default_rng(0).permutation(len(uniq))  # fixed: scoring order only
         self.src = torch.as_tensor(uniq[order], dtype=dtype, device=device)
         self.weight = counts[order].astype(np.int64)
         self.total = int(self.weight.sum())
-        self.tree = cKDTree(np.unique(np.asarray(tgt), axis=0))
+        self.tree = cKDTree(_unique_rows(np.asarray(tgt))[0])
         self.tgt = None
         n = len(uniq)
         self.bounds = np.unique(np.linspace(0, n, min(self.CHUNKS, max(n, 1)) + 1).astype(int))
@@ -340,14 +354,17 @@ class _GridOverlapScore(_PrunedOverlapScore):
     only the *maybe* points of the others go to the KD-tree. With target points about as far apart as
     ``distance`` (Predator's sampled N), most points of a good hypothesis are *in* and most of a bad
     one *out*. The grid is built once ``WARM`` hypotheses have been scored (until then the chunked scorer
-    does it: an easy pair may stop before the grid would pay for itself). :func:`_overlap_scorer` uses it
-    where the grid has at most ``MAX_CELLS`` cells.
+    does it); 0, at the first batch, was faster than 16 at Open3D's early exit on the benchmark's pairs (the
+    chunked scorer's KD-tree queries of the first 16 cost more than the grid). The *out* points of the
+    batch's best hypotheses are not queried for their squared distances either (they add nothing).
+    :func:`_overlap_scorer` uses it where the grid has at most ``MAX_CELLS`` cells.
     """
 
     CELLS_PER_DISTANCE = 4
     MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m in cells of 1/4 of Predator's 5 cm
     TOP = 8  # hypotheses counted exactly first, to raise the bar for the others
-    WARM = 16  # hypotheses scored by the chunked scorer before the grid pays for itself (easy pairs stop early)
+    WARM = 0  # hypotheses scored by the chunked scorer before the grid is built (16 was slower on the benchmark)
+    WRITE = 1 << 15  # cells marked per NumPy write while building (one offset per write was slower for small N)
 
     @classmethod
     def _frame(cls, tgt: np.ndarray, distance: float) -> tuple[float, int, np.ndarray, np.ndarray] | None:
@@ -387,9 +404,11 @@ class _GridOverlapScore(_PrunedOverlapScore):
         near = np.linalg.norm(np.maximum(np.abs(off) - 1, 0), axis=1) * c <= distance * (1 + 1e-3)
         sure = np.linalg.norm(np.abs(off) + 1, axis=1) * c < distance * (1 - 1e-3)
         grid = np.zeros(int(np.prod(self.dims)), dtype=np.int8)
-        for label, offsets in ((1, off[near]), (2, off[sure])):  # maybe, then in (one offset at a time: cache-friendly)
-            for o in offsets @ strides:
-                grid[occupied + o] = label
+        step = max(1, self.WRITE // len(occupied))  # offsets per write: few large writes, offset by offset
+        for label, offsets in ((1, off[near]), (2, off[sure])):  # maybe, then in
+            flat = offsets @ strides
+            for a in range(0, len(flat), step):
+                grid[(flat[a : a + step, None] + occupied).ravel()] = label
         self.grid_t = torch.from_numpy(grid)
         self.strides_t = torch.as_tensor(strides, dtype=torch.float64)  # flat index of whole cells, exact in float64
         self.weight_t = torch.as_tensor(self.weight, dtype=torch.float64)
@@ -407,18 +426,23 @@ class _GridOverlapScore(_PrunedOverlapScore):
         g = torch.minimum(g.floor_().clamp_(min=0.0), hi)
         return self.grid_t[(g.double() @ self.strides_t).long()].T  # (H, n)
 
-    def _exact(self, R: torch.Tensor, t: torch.Tensor, group: np.ndarray, pts_of: torch.Tensor
+    def _query(self, R: torch.Tensor, t: torch.Tensor, group: np.ndarray, pts_of: torch.Tensor
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """KD-tree scores of hypotheses ``group`` (g,) on the points marked in ``pts_of`` (g, n) bool: which
-        hypothesis (m,), inlier weight (m,) and weighted squared distance (m,) of each marked point. The
-        points are transformed as the reference scorer transforms them."""
+        """KD-tree distances of the points marked in ``pts_of`` (g, n) bool under hypotheses ``group`` (g,):
+        each marked point's hypothesis (m,) (a place in ``group``), point (m,) and distance (m,) (inf beyond
+        ``distance``), hypothesis by hypothesis in point order. The points are transformed as the reference
+        scorer transforms them."""
         sel = torch.as_tensor(group)
         q = self.src[None] @ R[sel].transpose(1, 2) + t[sel][:, None, :]  # (g, n, 3)
         hyp, pts = torch.nonzero(pts_of, as_tuple=True)
         d, _ = self.tree.query(q[hyp, pts].double().numpy(), k=1, distance_upper_bound=self.distance)
+        return hyp.numpy(), pts.numpy(), d
+
+    def _squared_distances(self, hyp: np.ndarray, pts: np.ndarray, d: np.ndarray, g: int) -> np.ndarray:
+        """Summed weighted squared inlier distances (g,) of KD-tree results (m,) of :meth:`_query`, summed
+        point by point in the order given (np.bincount adds in order, as the reference's sum does)."""
         inl = d < self.distance
-        w = self.weight[pts.numpy()]
-        return hyp.numpy(), w * inl, np.where(inl, d * d, 0.0) * w
+        return np.bincount(hyp, weights=np.where(inl, d * d, 0.0) * self.weight[pts], minlength=g)
 
     def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         H = R.shape[0]
@@ -436,21 +460,39 @@ class _GridOverlapScore(_PrunedOverlapScore):
         level = max(int(floor), int(low.max()))
         order = np.argsort(-high, kind="stable")
         todo = order[high[order] >= level]
+        found = []  # (hypotheses (g,), KD-tree results of their maybe points)
         for group in (todo[: self.TOP], todo[self.TOP :]):
             group = group[high[group] >= level]  # the bar may have risen
             if len(group) == 0:
                 continue
-            hyp, wi, _ = self._exact(R, t, group, maybe[torch.as_tensor(group)])
+            hyp, pts, d = self._query(R, t, group, maybe[torch.as_tensor(group)])
+            wi = self.weight[pts] * (d < self.distance)
             count[group] = low[group] + np.bincount(hyp, weights=wi, minlength=len(group)).astype(np.int64)
             level = max(level, int(count[group].max()))
+            found.append((group, hyp, pts, d))
         count[(count >= 0) & (count < level)] = -1  # cannot be chosen
         err = np.zeros(H, dtype=np.float64)
         best = int(count.max())
         if best >= 0:  # the RMSE tie-break needs the batch's best hypotheses' squared distances
             top = np.nonzero(count == best)[0]
-            hyp, _, e = self._exact(R, t, top, torch.ones(len(top), states.shape[1], dtype=torch.bool))
-            err[top] = np.bincount(hyp, weights=e, minlength=len(top))
+            err[top] = self._top_errors(R, t, top, states, found)
         return torch.as_tensor(count), torch.as_tensor(err)
+
+    def _top_errors(self, R: torch.Tensor, t: torch.Tensor, top: np.ndarray, states: torch.Tensor, found: list
+                    ) -> np.ndarray:
+        """Summed weighted squared inlier distances (k,) of hypotheses top (k,), the reference's sums bit for
+        bit: KD-tree distances of their *in* points, those of their *maybe* points found while counting, and
+        nothing for their *out* points (no inliers; adding 0.0 leaves a sum unchanged), in point order."""
+        hyp, pts, d = self._query(R, t, top, states[torch.as_tensor(top)] == 2)
+        parts = [(hyp, pts, d)]
+        place = np.full(states.shape[0], -1, dtype=np.int64)
+        place[top] = np.arange(len(top))
+        for group, g_hyp, g_pts, g_d in found:
+            at = place[group][g_hyp]  # each result's place in top, -1 for another hypothesis
+            parts.append((at[at >= 0], g_pts[at >= 0], g_d[at >= 0]))
+        hyp, pts, d = (np.concatenate(p) for p in zip(*parts))
+        order = np.lexsort((pts, hyp))  # hypothesis by hypothesis, in point order
+        return self._squared_distances(hyp[order], pts[order], d[order], len(top))
 
 
 def _overlap_scorer(src: np.ndarray, tgt: np.ndarray, cfg: RansacConfig, dtype, dev: torch.device) -> _OverlapScore:
@@ -481,18 +523,22 @@ def ransac(
     cfg: RansacConfig | None = None,
     seed: int | np.random.Generator = 0,
     device: str | torch.device | None = None,
+    *,
+    fast: bool = True,
 ) -> RansacResult:
     """Batched RANSAC: transform mapping source into target from putative correspondences.
 
     src_points (N, 3), tgt_points (M, 3); correspondences (K, 2) int: rows (source index,
     target index). Returns the identity with fitness 0 when K < ransac_n or no hypothesis passes.
+    fast: on CPU, the edge-length checks in NumPy and the leaner fit of :func:`_fit_and_check_distance_cpu`
+    (False: the torch path of other devices, the reference; both give the same result bit for bit).
     """
     cfg = cfg or RansacConfig()
     with torch_threads(cfg.threads, device), torch.no_grad():
-        return _ransac(src_points, tgt_points, correspondences, cfg, seed, device)
+        return _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast)
 
 
-def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> RansacResult:
+def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bool = True) -> RansacResult:
     corr = np.asarray(correspondences, dtype=np.int64).reshape(-1, 2)
     K, n = len(corr), cfg.ransac_n
     if K < n:
@@ -508,8 +554,9 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     Q = torch.as_tensor(q64 - cq, dtype=dtype, device=dev)
     feats = _features(S, Q)
     thr2 = cfg.distance**2
-    ea, eb = _edge_pairs(n)
-    sim2 = cfg.edge_length**2
+    use_numpy = bool(fast) and dev.type == "cpu"
+    edges = _EdgeCheck(S, Q, n, cfg.edge_length**2, use_numpy)
+    fit = _fit_and_check_distance_cpu if use_numpy else _fit_and_check_distance
     overlap = None
     if cfg.score == "overlap":
         overlap = _overlap_scorer(np.asarray(src_points, dtype=np.float64) - cs,
@@ -521,15 +568,12 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     log_fail = math.log(1.0 - cfg.confidence) if cfg.confidence < 1.0 else -math.inf
     while drawn < limit:
         b = min(batch, limit - drawn)
-        idx = torch.as_tensor(rng.integers(0, K, size=(b, n)), device=dev)
         drawn += b
         batch = min(2 * batch, cfg.max_batch)
-        ok = _edge_length_ok(S, Q, idx, ea, eb, sim2)
-        idx = idx[ok]
-        pos = torch.nonzero(ok).reshape(-1)  # each surviving sample's place in the batch (draw order)
+        idx, pos = edges(rng.integers(0, K, size=(b, n)))  # pos: each survivor's place in the batch (draw order)
         if idx.shape[0] == 0:
             continue
-        R, t, ok = _fit_and_check_distance(S[idx], Q[idx], cfg.distance)
+        R, t, ok = fit(S[idx], Q[idx], cfg.distance)
         if not bool(ok.any()):
             continue
         R, t = R[ok], t[ok]
@@ -572,6 +616,50 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device) -> Ransa
     return out
 
 
+class _EdgeCheck:
+    """Open3D's edge-length checker on samples of the centred correspondences S, Q (K, 3), before any fit.
+
+    With ``use_numpy`` (the CPU default) it runs in NumPy on the same float32 / float64 values with the
+    same operations in the same order, so the same samples pass as with :func:`_edge_length_ok` (torch,
+    the path on other devices): the batches are large (up to ``max_batch`` samples) and almost all fail,
+    so it checks one edge at a time on the samples still standing.
+    """
+
+    def __init__(self, S: torch.Tensor, Q: torch.Tensor, n: int, sim2: float, use_numpy: bool):
+        self.S, self.Q, self.sim2, self.use_numpy = S, Q, sim2, use_numpy
+        self.ea, self.eb = _edge_pairs(n)
+        if use_numpy:  # coordinate columns (3 x (K,)): np.take on a 1-D array is NumPy's fastest gather
+            self.s_cols = [np.ascontiguousarray(S[:, c].numpy()) for c in range(3)]
+            self.q_cols = [np.ascontiguousarray(Q[:, c].numpy()) for c in range(3)]
+
+    def __call__(self, idx: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Samples idx (b, n) int64 -> the passing samples (m, n) and their places in the batch (m,), torch on
+        the device of S."""
+        if not self.use_numpy:
+            idx_t = torch.as_tensor(idx, device=self.S.device)
+            ok = _edge_length_ok(self.S, self.Q, idx_t, self.ea, self.eb, self.sim2)
+            return idx_t[ok], torch.nonzero(ok).reshape(-1)
+        pos = np.arange(len(idx))
+        for a, c in zip(self.ea, self.eb):  # the same test as _edge_length_ok, one edge at a time
+            ia, ic = idx[:, a], idx[:, c]
+            ls, lq = _squared_lengths(self.s_cols, ia, ic), _squared_lengths(self.q_cols, ia, ic)
+            ok = (ls >= lq * self.sim2) & (lq >= ls * self.sim2)
+            pos, idx = pos[ok], idx[ok]
+            if len(pos) == 0:
+                break
+        return torch.from_numpy(idx), torch.from_numpy(pos)
+
+
+def _squared_lengths(cols: list[np.ndarray], ia: np.ndarray, ic: np.ndarray) -> np.ndarray:
+    """|p[ia] - p[ic]|^2 (b,) of points given as coordinate columns cols (3 x (K,)), summed x, y, z in
+    this order as torch's ``(e * e).sum(1)`` does (bit for bit)."""
+    out = None
+    for col in cols:
+        e = col.take(ia) - col.take(ic)
+        out = e * e if out is None else out + e * e
+    return out
+
+
 def _edge_length_ok(S: torch.Tensor, Q: torch.Tensor, idx: torch.Tensor, ea, eb, sim2: float) -> torch.Tensor:
     """Open3D's edge-length checker on samples idx (b, n) of centred correspondences S, Q (K, 3):
     (b,) bool. On squared lengths; it needs no transform, so it runs before the fit."""
@@ -588,6 +676,22 @@ def _fit_and_check_distance(ps: torch.Tensor, pq: torch.Tensor, distance: float)
     """Kabsch fits of samples ps, pq (h, n, 3) and Open3D's distance checker: R (h, 3, 3), t (h, 3),
     ok (h,) bool (every sampled pair within ``distance`` after the fit)."""
     R, t = kabsch(ps, pq)
+    res = (ps @ R.transpose(1, 2) + t[:, None, :] - pq).norm(dim=-1)
+    return R, t, (res <= distance).all(1)
+
+
+def _fit_and_check_distance_cpu(ps: torch.Tensor, pq: torch.Tensor, distance: float):
+    """:func:`_fit_and_check_distance` bit for bit with fewer tensor operations (CPU tensors): the same
+    products in the same order (ATen's small-matrix bmm), the reflection's sign from NumPy's determinants of
+    U and V^T (their product's sign is that of det(V U^T), a rotation's or a reflection's, +-1), and V^T's
+    last row flipped in place instead of a (h, 3) matrix of signs."""
+    cs, ct = ps.mean(1, keepdim=True), pq.mean(1, keepdim=True)
+    U, _, Vh = torch.linalg.svd((ps - cs).transpose(1, 2) @ (pq - ct))
+    sign = np.sign(np.linalg.det(U.numpy()) * np.linalg.det(Vh.numpy()))
+    sign[sign == 0] = 1.0
+    Vh[:, 2] *= torch.from_numpy(sign)[:, None]
+    R = Vh.transpose(1, 2) @ U.transpose(1, 2)  # (V D) U^T
+    t = ct[:, 0] - (R @ cs[:, 0, :, None])[..., 0]
     res = (ps @ R.transpose(1, 2) + t[:, None, :] - pq).norm(dim=-1)
     return R, t, (res <= distance).all(1)
 
