@@ -221,8 +221,10 @@ def main(argv: list[str] | None = None) -> dict:
     for name in agreement[0]:
         heads[f"descriptor_{name}_auc"] = mean_auc([ag[name] for ag in agreement], labels)
     print(f"{len(outs)} pairs of {args.root} {args.benchmark}; overlap labels within {radius:.3f} m")
+    unrelated = heads.get("overlap_auc_unrelated_partner")
+    why_not = "n/a: a color model" if getattr(module, "lifter", None) is not None else "n/a: one scene"
     print(f"overlap AUC {heads['overlap_auc']:.3f} (with an unrelated partner: "
-          f"{heads.get('overlap_auc_unrelated_partner', float('nan')):.3f}); matchability AUC {heads['matchability_auc']:.3f}")
+          f"{why_not if unrelated is None else f'{unrelated:.3f}'}); matchability AUC {heads['matchability_auc']:.3f}")
     print("AUC of the descriptors' own agreement (no head): "
           + "; ".join(f"{n} {heads[f'descriptor_{n}_auc']:.3f}" for n in agreement[0]))
     cues = cue_table(outs, labels)
