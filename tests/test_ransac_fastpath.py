@@ -13,23 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from pcrcg.geometry import make_transform, random_rotation, transform_points
+from pcrcg.geometry import random_rotation
 from pcrcg.registration.ransac import (RansacConfig, _EdgeCheck, _fit_and_check_distance,
                                       _fit_and_check_distance_cpu, _GridOverlapScore, _unique_rows, ransac)
-from pcrcg.registration.synthetic import box_room
+from pcrcg.registration.synthetic import correspondence_problem
 
 
 def _problem(seed: int, n: int, inlier_ratio: float):
-    """Room-surface correspondences (n, 2) with ``inlier_ratio`` true matches: src (n, 3), tgt (n, 3), corr."""
-    rng = np.random.default_rng(seed)
-    pts, _ = box_room(rng, 4 * n)
-    src = pts[rng.choice(len(pts), n, replace=False)]
-    T = make_transform(random_rotation(rng), rng.normal(size=3))
-    tgt = transform_points(T, src) + rng.normal(scale=0.01, size=src.shape)
-    perm = np.arange(n)
-    bad = rng.random(n) >= inlier_ratio
-    perm[bad] = rng.integers(0, n, int(bad.sum()))
-    return src, tgt, np.stack([np.arange(n), perm], 1)
+    """src (n, 3), tgt (n, 3), corr (n, 2): :func:`correspondence_problem` without its generator."""
+    return correspondence_problem(seed, n, inlier_ratio)[1:]
 
 
 # (seed, N, inlier ratio, settings) -> (iterations, n_checked, n_inliers, translation) of the implementation

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
-from pcrcg.geometry import make_transform, random_rotation, transform_points
+from pcrcg.geometry import random_rotation
 from pcrcg.registration import FragmentOutput, RegistrationConfig, register_features
 from pcrcg.registration.matching import first_occurrences, match_descriptors
 from pcrcg.registration.ransac import (RansacConfig, _GridOverlapScore, _OverlapScore, _PrunedOverlapScore,
                                       ransac)
-from pcrcg.registration.synthetic import box_room
+from pcrcg.registration.synthetic import correspondence_problem
 
 
 def test_first_occurrences_maps_every_row_to_its_ids_first_position():
@@ -46,15 +46,7 @@ def test_matching_with_ids_equals_plain_matching(mutual, seed):
 
 
 def _clouds(seed: int, n: int = 1500, inlier_ratio: float = 0.3):
-    rng = np.random.default_rng(seed)
-    pts, _ = box_room(rng, 4 * n)
-    src = pts[rng.choice(len(pts), n, replace=False)]
-    T = make_transform(random_rotation(rng), rng.normal(size=3))
-    tgt = transform_points(T, src) + rng.normal(scale=0.01, size=src.shape)
-    perm = np.arange(n)
-    bad = rng.random(n) >= inlier_ratio
-    perm[bad] = rng.integers(0, n, int(bad.sum()))
-    return rng, src, tgt, np.stack([np.arange(n), perm], 1)
+    return correspondence_problem(seed, n, inlier_ratio)
 
 
 def test_pruned_overlap_score_keeps_every_count_that_can_win():

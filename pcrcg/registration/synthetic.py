@@ -2,6 +2,8 @@
 
 * :func:`box_room` a textured room (floor, walls, boxes) as points and colors;
 * :func:`make_fragment_pair` two overlapping crops of it, each in its own frame;
+* :func:`correspondence_problem` putative correspondences of a moved copy of it, a share of them true
+  (RANSAC's input);
 * :func:`simulate_outputs` descriptor / overlap / matchability arrays that behave like a trained
   network's (descriptors are random Fourier features of the true position plus noise);
 * :func:`write_layout` a tiny data set in the 3DMatch layout (fragments + benchmark files).
@@ -94,6 +96,21 @@ def make_fragment_pair(
         transform_points(A_s, sw).astype(np.float32), transform_points(A_t, tw).astype(np.float32),
         sc.astype(np.float32), tc.astype(np.float32), A_t @ invert(A_s), sw, tw, d < 1.5 * voxel, A_s, A_t,
     )
+
+
+def correspondence_problem(seed: int, n: int, inlier_ratio: float
+                           ) -> tuple[np.random.Generator, np.ndarray, np.ndarray, np.ndarray]:
+    """n room-surface points and a rigidly moved, 1 cm-noisy copy, with putative correspondences of which
+    about ``inlier_ratio`` are true -> (the generator after drawing, src (n, 3), tgt (n, 3), corr (n, 2))."""
+    rng = np.random.default_rng(seed)
+    pts, _ = box_room(rng, 4 * n)
+    src = pts[rng.choice(len(pts), n, replace=False)]
+    T = make_transform(random_rotation(rng), rng.normal(size=3))
+    tgt = transform_points(T, src) + rng.normal(scale=0.01, size=src.shape)
+    perm = np.arange(n)
+    bad = rng.random(n) >= inlier_ratio
+    perm[bad] = rng.integers(0, n, int(bad.sum()))
+    return rng, src, tgt, np.stack([np.arange(n), perm], 1)
 
 
 def simulate_outputs(
