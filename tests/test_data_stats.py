@@ -144,6 +144,11 @@ def test_overlap_histogram_and_hole_rate_and_summary():
     depth[:1] = 0
     assert M.hole_rate(depth) == 0.25
     assert M.hole_rate(np.zeros((2, 2), np.uint16)) == 1.0
+    depth[1:, :5] = 2.0  # 15 pixels at 2 m, 9 at 1 m, 8 holes: the median of what has depth is 2 m
+    assert M.median_depth(depth) == 2.0
+    depth[1:, :3] = np.nan  # 6 at 2 m, 9 at 1 m left: 1 m
+    assert M.median_depth(depth) == 1.0
+    assert np.isnan(M.median_depth(np.zeros((2, 2), np.float32)))
     s = M.summarize([1, 2, 3, 4, float("nan"), None])
     assert s["n"] == 4 and s["mean"] == 2.5 and s["min"] == 1 and s["max"] == 4
     assert M.summarize([])["mean"] is None
@@ -223,6 +228,7 @@ def test_cli_end_to_end_on_tiny(tiny_root, tmp_path, capsys):
     assert col["sift"]["grid"]["size"] == "160x120"
     assert col["sift"]["grid"]["keypoints"]["mean"] > 0
     assert 0 <= col["depth"]["mean"] < 1 and col["depth"]["frames"] == 12
+    assert col["depth"]["median_m"]["n"] == 12 and 0.4 < col["depth"]["median_m"]["median"] < 4.5
     assert data["settings"]["pairs"] == 2
     flat = col["summary"]
     assert flat["planarity_median"] == fr["planarity"]["median"] and flat["fragments"] == n_frag
@@ -276,3 +282,4 @@ def test_real_folder_with_frames_and_benchmarks(tmp_path, capsys):
     assert col["sift"]["view_pairs"] == 10 and col["sift"]["native_size"] == ["640x480"]
     assert col["sift"]["native"]["keypoints"]["mean"] > col["sift"]["grid"]["keypoints"]["mean"]
     assert 0.02 < col["depth"]["mean"] < 0.3
+    assert 1.2 < col["depth"]["median_m"]["median"] < 2.6  # 7-Scenes' kitchen: 1.4-2.4 m per frame

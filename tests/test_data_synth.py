@@ -149,6 +149,30 @@ def test_a_sweeping_scan_goes_back_and_forth_over_an_arc(seed):
     assert np.all(np.isfinite(poses)) and room.is_walkable(poses[:, :2, 3]).mean() > 0.7
 
 
+@pytest.mark.parametrize("seed", [0, 2, 3])
+def test_an_inward_scan_stands_its_radius_from_the_table_and_tilts_by_inward_tilt(seed):
+    """Generator v7: inward scans circle the table's middle at ``inward_radius`` (at most 80% of the
+    free floor's reach) with ``inward_tilt_deg`` more tilt than outward ones."""
+    room = make_room(np.random.default_rng(seed))
+    assert room.focus is not None  # these seeds draw rooms with a central table
+    t = np.arange(0, 20.0, 0.5)
+    far = ScanPath(room, np.random.default_rng(seed), ScanConfig(inward_share=1.0, inward_radius=(2.0, 2.0)))
+    near = ScanPath(room, np.random.default_rng(seed), ScanConfig(inward_share=1.0, inward_radius=(1.0, 1.0),
+                                                                  inward_tilt_deg=10.0))
+    assert far.inward and near.inward
+    # both are min(80% of the free reach, radius) per direction
+    assert far.reach.max() == pytest.approx(2.0) and near.reach.max() == pytest.approx(1.0)
+    np.testing.assert_allclose(near.reach, np.minimum(far.reach, 1.0))
+    pf, pn = far.pose(t), near.pose(t)
+    d_far = np.linalg.norm(pf[:, :2, 3] - room.focus, axis=1)
+    d_near = np.linalg.norm(pn[:, :2, 3] - room.focus, axis=1)
+    assert np.all(np.abs(d_far - far._radius(far._theta(t))) < 0.3)  # the loop plus the hand's wobble
+    assert np.median(d_far) > np.median(d_near)
+    tilt_far = np.degrees(np.arcsin(pf[:, 2, 2]))
+    tilt_near = np.degrees(np.arcsin(pn[:, 2, 2]))
+    np.testing.assert_allclose(tilt_far - tilt_near, 10.0, atol=1e-6)  # the same hand, 10 deg less tilt
+
+
 def test_fusion_of_a_plane_lies_on_the_plane():
     room = _box_room(Texture("checks", np.array([[0.9, 0.1, 0.1], [0.1, 0.1, 0.9], [0.5, 0.5, 0.5]]), 0.25, grain=0.0))
     r = RoomRenderer(room, SensorModel(dropout=0.0, edge_drop=0.0))

@@ -30,7 +30,7 @@ from pcrcg.data.synth.render import SensorModel
 from pcrcg.data.synthmatch import SynthConfig, assign_splits, generate_scene, scene_name, set_parent
 from pcrcg.errors import ConfigError, DataError
 
-GENERATOR_VERSION = 6  # conf/data/common/version.yaml holds the same number (data.version); bump both
+GENERATOR_VERSION = 7  # conf/data/common/version.yaml holds the same number (data.version); bump both
 SOURCES = ("synthmatch", "redkitchen", "threedmatch")
 
 

@@ -334,7 +334,8 @@ def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
 
 def depth_stats(src: Source, cfg: StatsConfig) -> dict[str, Any] | None:
     """Share of zero-depth pixels per frame over at most ``cfg.frames`` frames of the measured
-    fragments (their frame ranges, spread evenly). None without frames."""
+    fragments (their frame ranges, spread evenly), and under ``median_m`` the frames' median depth
+    (how far the camera stands from what it scans). None without frames."""
     if not src.has_frames or not src.infos:
         return None
     frames = []
@@ -350,8 +351,9 @@ def depth_stats(src: Source, cfg: StatsConfig) -> dict[str, Any] | None:
     frames = evenly(sorted(set(frames)), cfg.frames)
     if not frames:
         return None
-    rates = [M.hole_rate(read_depth(p)) for p in frames]
-    return {**M.summarize(rates), "frames": len(frames)}
+    depths = [read_depth(p) for p in frames]
+    rates = [M.hole_rate(d) for d in depths]
+    return {**M.summarize(rates), "frames": len(frames), "median_m": M.summarize(M.median_depth(d) for d in depths)}
 
 
 # --------------------------------------------------------------------------- one column
@@ -410,6 +412,7 @@ def flat_summary(col: dict[str, Any]) -> dict[str, Any]:
         "sift_matches_grid_mean": get("sift", "grid", "matches", "mean"),
         "sift_matches_native_mean": get("sift", "native", "matches", "mean"),
         "depth_hole_rate_mean": get("depth", "mean"),
+        "depth_median_m": get("depth", "median_m", "median"),
     }
     for b in BENCHMARKS:
         out[f"{b}_overlap_median"] = get("overlap", b, "median")

@@ -19,7 +19,7 @@ Points are (N, 3) arrays in metres; no function writes to its input.
   circle, where in the camera frame the normals of floors and side walls would straddle it.
   200 cells: at most log2(200) = 7.64 bits; one plane gives 0 bits, the three face orientations
   of a cube log2(3) = 1.58 bits.
-* :func:`overlap_histogram`, :func:`hole_rate`, :func:`summarize`.
+* :func:`overlap_histogram`, :func:`hole_rate`, :func:`median_depth`, :func:`summarize`.
 """
 
 from __future__ import annotations
@@ -213,6 +213,14 @@ def hole_rate(depth: np.ndarray) -> float:
         return float("nan")
     bad = (d == 0) | ~np.isfinite(d) if np.issubdtype(d.dtype, np.floating) else (d == 0)
     return float(np.mean(bad))
+
+
+def median_depth(depth: np.ndarray) -> float:
+    """Median depth (metres) over the pixels of a depth image (H, W) that have depth (> 0 and
+    finite); NaN when none has."""
+    d = np.asarray(depth, dtype=np.float64)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if d.size else float("nan")
 
 
 def summarize(values: Iterable[float]) -> dict[str, float | int | None]:

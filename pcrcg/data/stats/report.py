@@ -96,6 +96,13 @@ def _holes(c: dict) -> str:
     return f"{100 * d['mean']:.1f}% ({100 * d['p10']:.1f}–{100 * d['p90']:.1f}%), {d['frames']} frames"
 
 
+def _depth_m(c: dict) -> str:
+    m = (c.get("depth") or {}).get("median_m")
+    if not m or m.get("median") is None:
+        return DASH
+    return f"{m['median']:.2f} ({m['p10']:.2f}–{m['p90']:.2f})"
+
+
 def _frag(c: dict) -> dict:
     return c.get("fragments") or {}
 
@@ -126,6 +133,7 @@ ROWS: list[tuple[str, Callable[[dict], str]]] = [
     ("view pairs (first-first, last-last of each pair run)",
      lambda c: DASH if not c.get("sift") else f"{c['sift']['view_pairs']} ({c['sift']['view_pairs_skipped']} without frames)"),
     ("depth holes: share of zero pixels, mean (p10–p90)", _holes),
+    ("depth per frame, median over its pixels with depth, m: median (p10–p90)", _depth_m),
 ]
 
 
