@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pcrcg.data.stats import measures as M
+from pcrcg.data.stats import collect as C
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REAL_FRAGMENTS = SHARED / "real-3dmatch-fragments" / "7-scenes-redkitchen"
@@ -149,6 +150,25 @@ def test_overlap_histogram_and_hole_rate_and_summary():
     depth[1:, :3] = np.nan  # 6 at 2 m, 9 at 1 m left: 1 m
     assert M.median_depth(depth) == 1.0
     assert np.isnan(M.median_depth(np.zeros((2, 2), np.float32)))
+
+
+def test_covisibility_of_two_views_of_a_wall():
+    """A wall 2 m ahead: the same view sees all of it, a view shifted by half the wall's width in
+    the image sees half, a view turned round none, a wall moved 0.5 m away none (depth disagrees)."""
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    depth = np.full((48, 64), 2.0, np.float32)
+    eye = np.eye(4)
+    assert M.covisibility(depth, eye, depth, eye, K) == 1.0
+    shifted = np.eye(4)
+    shifted[0, 3] = 32 * 2.0 / 50.0  # half the image width at 2 m
+    assert M.covisibility(depth, eye, depth, shifted, K) == pytest.approx(0.5, abs=0.04)
+    turned = np.diag([-1.0, 1.0, -1.0, 1.0])
+    assert M.covisibility(depth, eye, depth, turned, K) == 0.0
+    assert M.covisibility(depth, eye, depth + 0.5, eye, K) == 0.0
+    assert np.isnan(M.covisibility(np.zeros_like(depth), eye, depth, eye, K))
+    bins = C.matches_by_covisibility([0.05, 0.4, 0.45, 1.0, float("nan")], [0, 3, 5, 20, 7])
+    assert [(b["n"], b["mean"]) for b in bins] == [(1, 0.0), (2, 4.0), (1, 20.0)]
+    assert bins[0]["verified_share"] == 0.0 and bins[1]["verified_share"] == 1.0
     s = M.summarize([1, 2, 3, 4, float("nan"), None])
     assert s["n"] == 4 and s["mean"] == 2.5 and s["min"] == 1 and s["max"] == 4
     assert M.summarize([])["mean"] is None
@@ -227,6 +247,9 @@ def test_cli_end_to_end_on_tiny(tiny_root, tmp_path, capsys):
     assert col["sift"]["view_pairs"] == 2 * run  # first-first and last-last of each pair run
     assert col["sift"]["grid"]["size"] == "160x120"
     assert col["sift"]["grid"]["keypoints"]["mean"] > 0
+    assert col["sift"]["covisibility"]["n"] == col["sift"]["view_pairs"]  # every view pair has depth and pose
+    assert sum(b["n"] for b in col["sift"]["grid_by_covisibility"]) == col["sift"]["view_pairs"]
+    assert "co-visibility" in md
     assert 0 <= col["depth"]["mean"] < 1 and col["depth"]["frames"] == 12
     assert col["depth"]["median_m"]["n"] == 12 and 0.4 < col["depth"]["median_m"]["median"] < 4.5
     assert data["settings"]["pairs"] == 2
@@ -283,3 +306,4 @@ def test_real_folder_with_frames_and_benchmarks(tmp_path, capsys):
     assert col["sift"]["native"]["keypoints"]["mean"] > col["sift"]["grid"]["keypoints"]["mean"]
     assert 0.02 < col["depth"]["mean"] < 0.3
     assert 1.2 < col["depth"]["median_m"]["median"] < 2.6  # 7-Scenes' kitchen: 1.4-2.4 m per frame
+    assert 0.0 < col["sift"]["covisibility"]["median"] < 1.0

@@ -31,9 +31,12 @@ Rows (see :mod:`pcrcg.data.stats.measures` for the definitions)
       :func:`pcrcg.vision.matching.match_images` with ``conf/matcher2d/sift.yaml``, at the
       projection's grid (``profile.lifting.image_size``, 160x120) and at the images' native size,
       for the paper's view pairs (first-first and last-last frames of the two fragments of each pair
-      run; frame ids from ``cloud_bin_<i>.info.txt``);
-    * depth holes: share of zero-depth pixels per frame over at most ``--frames`` frames of the
-      measured fragments.
+      run; frame ids from ``cloud_bin_<i>.info.txt``), and the grid's matches per bin of the view
+      pair's co-visibility (:func:`pcrcg.data.stats.measures.covisibility`: the share of the first
+      frame's depth pixels that the second frame sees at a consistent depth), so that data sets whose
+      pairs see each other more or less compare at equal co-visibility;
+    * depth holes: share of zero-depth pixels per frame, and the frames' median depth, over at most
+      ``--frames`` frames of the measured fragments.
     Image rows print "–" for a data set without RGB-D frames.
 
 A bad ROOT or folder is a one-line error naming it (exit status 2). Measures run on one core:
@@ -152,7 +155,8 @@ def _notes(cfg) -> str:
         f"{__import__('math').log2(cfg.n_cells):.2f} bits); FPFH + RANSAC through "
         f"`pcrcg.evaluation.stage.run_benchmark_mode` (profile {cfg.profile}), at most {cfg.pairs or 'all'} pairs "
         "per benchmark, spread evenly; SIFT by `pcrcg.vision.matching` (`conf/matcher2d/sift.yaml`) on the "
-        "first-first and last-last view pairs of those pairs; overlap counts in bins 0–10/10–30/30–50/50–70/70–100%.\n"
+        "first-first and last-last view pairs of those pairs; co-visibility: share of the first frame's depth "
+        "pixels (every 2nd row and column) seen by the second within 10% of their depth; overlap counts in bins 0–10/10–30/30–50/50–70/70–100%.\n"
     )
 
 

@@ -290,10 +290,43 @@ def view_pairs_of(src: Source, pairs: list[PairRecord]) -> tuple[list[tuple[Path
     return out, skipped
 
 
+def view_covisibility(src: Source, a: Path, b: Path) -> float:
+    """:func:`measures.covisibility` of two frames given by their color images (depth, pose and the
+    scene's ``camera-intrinsics.txt`` beside them); NaN when one of those is missing."""
+    from pcrcg.data.layout import read_intrinsics, read_pose
+
+    pa, pb = (p.with_name(p.name.split(".color.")[0]) for p in (a, b))
+    da, db = depth_path(pa), depth_path(pb)
+    poses = [q.with_name(q.name + ".pose.txt") for q in (pa, pb)]
+    intr = [d / "camera-intrinsics.txt" for d in (pa.parent, pa.parent.parent)]
+    intr = [k for k in intr if k.is_file()]
+    if da is None or db is None or not all(q.is_file() for q in poses) or not intr:
+        return float("nan")
+    return M.covisibility(read_depth(da), read_pose(poses[0]), read_depth(db), read_pose(poses[1]),
+                          read_intrinsics(intr[0]))
+
+
+def matches_by_covisibility(covis: list[float], matches: list[int]) -> list[dict[str, Any]]:
+    """Per bin of :data:`measures.COVIS_EDGES` (the last closed): view pairs and their verified
+    matches (mean, share with any), so that data sets whose pairs see each other more or less
+    compare at equal co-visibility."""
+    c, m = np.asarray(covis, dtype=np.float64), np.asarray(matches, dtype=np.float64)
+    out = []
+    edges = M.COVIS_EDGES
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        s = (c >= lo) & ((c <= hi) if k == len(edges) - 2 else (c < hi))
+        out.append({"lo": lo, "hi": hi, "n": int(s.sum()),
+                    "mean": float(m[s].mean()) if s.any() else None,
+                    "verified_share": float(np.mean(m[s] > 0)) if s.any() else None})
+    return out
+
+
 def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
                 progress: bool = True) -> dict[str, Any] | None:
     """SIFT keypoints per image and verified matches per view pair (the project's matcher at the
-    projection's grid and at native size) over the selected pairs' view pairs. None without frames."""
+    projection's grid and at native size) over the selected pairs' view pairs, and the view pairs'
+    co-visibility (:func:`view_covisibility`) with the grid's matches per co-visibility bin. None
+    without frames."""
     from pcrcg.vision.matching import match_images
 
     if not src.has_frames or not src.infos:
@@ -310,7 +343,9 @@ def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
     images: dict[Path, np.ndarray] = {}
     kp: dict[str, dict[Path, int]] = {k: {} for k in mcfgs}
     matches: dict[str, list[int]] = {k: [] for k in mcfgs}
+    covis: list[float] = []
     for a, b in tqdm(vps, desc=f"SIFT {src.name}", unit="view pair", disable=not progress, leave=False):
+        covis.append(view_covisibility(src, a, b))
         for p in (a, b):
             if p not in images:
                 images[p] = read_rgb(p)
@@ -328,6 +363,8 @@ def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
         out[k] = {"size": size, "keypoints": M.summarize(kp[k].values()), "matches": M.summarize(m),
                   "verified_share": float(np.mean(m > 0)), "min_matches": int(mc.min_matches),
                   "max_keypoints": int(mc.max_keypoints)}
+    out["covisibility"] = M.summarize(covis)
+    out["grid_by_covisibility"] = matches_by_covisibility(covis, matches["grid"])
     out["matcher"] = dataclasses.asdict(mcfgs["grid"])
     return out
 

@@ -19,7 +19,8 @@ Points are (N, 3) arrays in metres; no function writes to its input.
   circle, where in the camera frame the normals of floors and side walls would straddle it.
   200 cells: at most log2(200) = 7.64 bits; one plane gives 0 bits, the three face orientations
   of a cube log2(3) = 1.58 bits.
-* :func:`overlap_histogram`, :func:`hole_rate`, :func:`median_depth`, :func:`summarize`.
+* :func:`overlap_histogram`, :func:`hole_rate`, :func:`median_depth`, :func:`covisibility`,
+  :func:`summarize`.
 """
 
 from __future__ import annotations
@@ -221,6 +222,37 @@ def median_depth(depth: np.ndarray) -> float:
     d = np.asarray(depth, dtype=np.float64)
     d = d[np.isfinite(d) & (d > 0)]
     return float(np.median(d)) if d.size else float("nan")
+
+
+COVIS_EDGES = (0.0, 0.3, 0.5, 1.0)  # co-visibility bins of the view pairs' matches
+
+
+def covisibility(depth_a: np.ndarray, pose_a: np.ndarray, depth_b: np.ndarray, pose_b: np.ndarray,
+                 K: np.ndarray, step: int = 2, tol: float = 0.1) -> float:
+    """Share (0..1) of frame a's pixels with depth (every ``step``-th row and column) whose point
+    lands inside frame b, in front of it, at the depth b measures there within ``tol`` of that
+    depth: how much of a's view b sees too. Depths (H, W) in metres (0 = none), camera-to-world
+    poses (4, 4), the depth camera's intrinsics K (3, 3); both frames of one size. NaN when a has
+    no depth."""
+    za = np.asarray(depth_a, dtype=np.float64)[::step, ::step]
+    db = np.asarray(depth_b, dtype=np.float64)
+    H, W = db.shape
+    v, u = np.mgrid[0 : depth_a.shape[0] : step, 0 : depth_a.shape[1] : step]
+    m = np.isfinite(za) & (za > 0)
+    if not m.any():
+        return float("nan")
+    z = za[m]
+    pts = np.stack([(u[m] - K[0, 2]) * z / K[0, 0], (v[m] - K[1, 2]) * z / K[1, 1], z], 1)  # (n, 3) in a
+    rel = np.linalg.inv(pose_b) @ pose_a
+    q = pts @ rel[:3, :3].T + rel[:3, 3]  # (n, 3) in b
+    front = q[:, 2] > 1e-3
+    zq = np.where(front, q[:, 2], 1.0)
+    ub = np.rint(K[0, 0] * q[:, 0] / zq + K[0, 2])
+    vb = np.rint(K[1, 1] * q[:, 1] / zq + K[1, 2])
+    inside = front & (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
+    seen = db[vb[inside].astype(np.int64), ub[inside].astype(np.int64)]
+    agree = np.isfinite(seen) & (seen > 0) & (np.abs(seen - q[inside, 2]) <= tol * q[inside, 2])
+    return float(agree.sum() / m.sum())
 
 
 def summarize(values: Iterable[float]) -> dict[str, float | int | None]:

@@ -96,6 +96,14 @@ def _holes(c: dict) -> str:
     return f"{100 * d['mean']:.1f}% ({100 * d['p10']:.1f}–{100 * d['p90']:.1f}%), {d['frames']} frames"
 
 
+def _by_covis(c: dict) -> str:
+    s = c.get("sift") or {}
+    bins = s.get("grid_by_covisibility")
+    if not bins or not (s.get("covisibility") or {}).get("n"):
+        return DASH
+    return " / ".join(DASH if b["mean"] is None else f"{b['mean']:.1f} ({b['n']})" for b in bins)
+
+
 def _depth_m(c: dict) -> str:
     m = (c.get("depth") or {}).get("median_m")
     if not m or m.get("median") is None:
@@ -130,6 +138,8 @@ ROWS: list[tuple[str, Callable[[dict], str]]] = [
     ("SIFT keypoints / image, native size: mean (p10–p90)", lambda c: _sift(c, "native", "keypoints")),
     ("verified 2D matches / view pair, projection grid: mean", lambda c: _sift(c, "grid", "matches")),
     ("verified 2D matches / view pair, native size: mean", lambda c: _sift(c, "native", "matches")),
+    ("verified 2D matches / view pair, projection grid, by the pair's co-visibility 0–30 / 30–50 / 50–100%: "
+     "mean (view pairs)", _by_covis),
     ("view pairs (first-first, last-last of each pair run)",
      lambda c: DASH if not c.get("sift") else f"{c['sift']['view_pairs']} ({c['sift']['view_pairs_skipped']} without frames)"),
     ("depth holes: share of zero pixels, mean (p10–p90)", _holes),
