@@ -3,7 +3,8 @@
 * ``ransac(..., fast=True)`` (the CPU default: NumPy edge-length checks, the leaner fit) vs ``fast=False``
   (the torch path of other devices), on several settings and seeds;
 * its parts: the NumPy edge check, the leaner fit, the lexsort ``np.unique`` of rows, the grid built with
-  few large writes, the batch's best hypotheses' squared distances without their *out* points;
+  few large writes, the batch's best hypotheses' squared distances without their *out* points, squared
+  distances asked for only at a tie, a coarser grid for the first hypotheses;
 * results recorded with the implementation before the fast path (same seeds, same problems).
 """
 
@@ -14,7 +15,7 @@ import pytest
 import torch
 
 from pcrcg.geometry import random_rotation
-from pcrcg.registration.ransac import (RansacConfig, _EdgeCheck, _fit_and_check_distance,
+from pcrcg.registration.ransac import (RansacConfig, _Best, _EdgeCheck, _fit_and_check_distance,
                                       _fit_and_check_distance_cpu, _GridOverlapScore, _unique_rows, ransac)
 from pcrcg.registration.synthetic import correspondence_problem
 
@@ -119,7 +120,7 @@ def test_grid_built_in_large_writes_is_the_same(write, monkeypatch):
     src, tgt, _ = _problem(7, 400, 0.5)
     grid = _GridOverlapScore(src, tgt, 0.05, torch.float32, torch.device("cpu"))
     grid._build()
-    assert np.array_equal(grid.grid_t.numpy(), _grid_offset_by_offset(grid))
+    assert np.array_equal(grid.grid, _grid_offset_by_offset(grid))
 
 
 def test_best_hypotheses_squared_distances_skip_out_points_bit_for_bit():
@@ -154,3 +155,34 @@ def test_building_the_grid_at_once_gives_the_same_results(monkeypatch):
     before = ransac(src, tgt, corr, cfg, seed=1)
     assert np.array_equal(now.transform, before.transform)
     assert (now.iterations, now.n_checked, now.n_inliers) == (before.iterations, before.n_checked, before.n_inliers)
+
+
+def test_squared_distances_on_request_choose_as_given_ones():
+    """:class:`_Best` with the grid's counts alone (squared distances asked for only at a tie) takes the same
+    hypotheses, with the same squared RMSE, as with the squared distances of ``__call__``."""
+    rng = np.random.default_rng(11)
+    src, _, _ = _problem(11, 1200, 0.5)
+    tgt = src + rng.normal(scale=0.01, size=src.shape)
+    R = torch.as_tensor(np.stack([random_rotation(rng, 0.2 if k % 2 else 0.01) for k in range(16)]), dtype=torch.float32)
+    t = torch.as_tensor(rng.normal(scale=0.01, size=(16, 3)), dtype=torch.float32)
+    R[3], t[3] = torch.eye(3), torch.zeros(3)
+    R[6], t[6] = R[3], t[3]  # a tie within the batch
+    grid = _GridOverlapScore(src, tgt, 0.05, torch.float32, torch.device("cpu"))
+    given, asked = _Best(), _Best(grid.errors)
+    for batch in (slice(0, 8), slice(8, 16), slice(6, 7), slice(0, 2)):  # ties across batches too
+        Rb, tb = R[batch], t[batch]
+        count, err = grid(Rb, tb, given.count)
+        assert given.offer(Rb, tb, count, err) == asked.offer(Rb, tb, grid.counts(Rb, tb, asked.count), None)
+        assert given.count == asked.count and given.err2() == asked.err2()
+
+
+def test_coarse_grid_first_gives_the_same_results(monkeypatch):
+    src, tgt, corr = _problem(12, 900, 0.1)
+    cfg = RansacConfig(max_iterations=8000, max_validation=300, confidence=1.0)
+    results = []
+    for fine_after in (0, 100, 10**9):  # fine grid at once, coarse then fine, coarse throughout
+        monkeypatch.setattr(_GridOverlapScore, "FINE_AFTER", fine_after)
+        r = ransac(src, tgt, corr, cfg, seed=2)
+        results.append((r.transform, r.iterations, r.n_checked, r.n_inliers, r.inlier_rmse))
+    for r in results[1:]:
+        assert np.array_equal(r[0], results[0][0]) and r[1:] == results[0][1:]

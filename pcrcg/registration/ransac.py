@@ -257,6 +257,11 @@ class _OverlapScore:
             self.tree = None
             self.tgt = torch.as_tensor(tgt, dtype=dtype, device=device)
 
+    def score(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Counts (H,) and summed squared inlier distances (H,) of hypotheses R (H, 3, 3), t (H, 3) (squared
+        distances None where the scorer gives them on request, :meth:`_GridOverlapScore.errors`)."""
+        return self(R, t, floor)
+
     def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         H, N = R.shape[0], self.src.shape[0]
         q = self.src[None] @ R.transpose(1, 2) + t[:, None, :]  # (H, N, 3)
@@ -345,7 +350,9 @@ class _GridOverlapScore(_PrunedOverlapScore):
     the batch's top count their exact summed squared distances; a hypothesis that cannot win gets -1.
 
     The target's bounding box (grown by ``distance``) is cut into cubic cells of edge ``distance / 4``
-    (coarser, down to ``distance / 2``, for a box too large for ``MAX_CELLS``).
+    (coarser, down to ``distance / 2``, for a box too large for ``MAX_CELLS``); until ``FINE_AFTER``
+    hypotheses have been scored, of ``distance / 3`` (fewer cells to mark, more points left to the KD-tree:
+    faster for the few dozen hypotheses of a run with Open3D's early exit, slower for Open3D 0.10's 1,000).
     A cell is *in* when a target point lies in a cell so near that every point of both cells is closer
     than ``distance`` (so every point of the cell is an inlier), *out* when no target point lies in a
     cell whose nearest point could be within ``distance`` (every point of the cell is an outlier), and
@@ -355,24 +362,28 @@ class _GridOverlapScore(_PrunedOverlapScore):
     ``distance`` (Predator's sampled N), most points of a good hypothesis are *in* and most of a bad
     one *out*. The grid is built once ``WARM`` hypotheses have been scored (until then the chunked scorer
     does it); 0, at the first batch, was faster than 16 at Open3D's early exit on the benchmark's pairs (the
-    chunked scorer's KD-tree queries of the first 16 cost more than the grid). The *out* points of the
-    batch's best hypotheses are not queried for their squared distances either (they add nothing).
-    :func:`_overlap_scorer` uses it where the grid has at most ``MAX_CELLS`` cells.
+    chunked scorer's KD-tree queries of the first 16 cost more than the grid). :func:`ransac` asks for counts
+    alone (:meth:`counts`) and for squared distances (:meth:`errors`) only where its tie-break needs them;
+    ``__call__`` gives both, the batch's best hypotheses' squared distances without their *out* points (they
+    add nothing). :func:`_overlap_scorer` uses it where the grid has at most ``MAX_CELLS`` cells.
     """
 
     CELLS_PER_DISTANCE = 4
+    COARSE_CELLS_PER_DISTANCE = 3  # until FINE_AFTER hypotheses have been scored
+    FINE_AFTER = 128
     MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m in cells of 1/4 of Predator's 5 cm
     TOP = 8  # hypotheses counted exactly first, to raise the bar for the others
     WARM = 0  # hypotheses scored by the chunked scorer before the grid is built (16 was slower on the benchmark)
     WRITE = 1 << 15  # cells marked per NumPy write while building (one offset per write was slower for small N)
 
     @classmethod
-    def _frame(cls, tgt: np.ndarray, distance: float) -> tuple[float, int, np.ndarray, np.ndarray] | None:
+    def _frame(cls, tgt: np.ndarray, distance: float, cells: int | None = None
+               ) -> tuple[float, int, np.ndarray, np.ndarray] | None:
         """Cell edge, reach in cells, origin (3,) and grid shape (3,) for target points tgt (M, 3): cells of
-        ``distance / CELLS_PER_DISTANCE``, coarser (down to ``distance / 2``) where that grid would have more
-        than ``MAX_CELLS`` cells; None where even that one would."""
+        ``distance / cells`` (``CELLS_PER_DISTANCE``), coarser (down to ``distance / 2``) where that grid would
+        have more than ``MAX_CELLS`` cells; None where even that one would."""
         lo, hi = np.min(tgt, axis=0), np.max(tgt, axis=0)
-        for k in range(cls.CELLS_PER_DISTANCE, 1, -1):
+        for k in range(cells or cls.CELLS_PER_DISTANCE, 1, -1):
             c = distance / k
             reach = k + 1
             origin = lo - (reach + 1) * c  # a border of cells farther than ``distance`` from every target point
@@ -388,111 +399,115 @@ class _GridOverlapScore(_PrunedOverlapScore):
 
     def __init__(self, src: np.ndarray, tgt: np.ndarray, distance: float, dtype, device: torch.device):
         super().__init__(src, tgt, distance, dtype, device)
-        self.grid_t = None  # built at the first batch after WARM scored hypotheses
+        self.grid = None  # (cells,) int8, built at the first batch after WARM scored hypotheses
         self.scored = 0
 
-    def _build(self) -> None:
+    def _build(self, cells: int | None = None) -> None:
+        """The grid of cell states in cells of ``distance / cells`` (``CELLS_PER_DISTANCE``, or coarser where
+        that grid is too large), occupied cell by occupied cell (few large writes, each to nearby cells)."""
         distance = self.distance
         tgt_u = self.tree.data
-        c, reach, self.origin, self.dims = self._frame(tgt_u, distance)
+        self.fine = cells is None
+        c, reach, self.origin, self.dims = self._frame(tgt_u, distance, cells)
         self.cell = c
-        strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
-        occupied = np.unique(np.floor((tgt_u - self.origin) / c).astype(np.int64) @ strides)
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+        occupied = np.unique(np.floor((tgt_u - self.origin) / c).astype(np.int64) @ self.strides)
         r = np.arange(-reach, reach + 1)
         off = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
         # a cell pair whose nearest points are within ``distance`` / whose farthest points are nearer than it
         near = np.linalg.norm(np.maximum(np.abs(off) - 1, 0), axis=1) * c <= distance * (1 + 1e-3)
         sure = np.linalg.norm(np.abs(off) + 1, axis=1) * c < distance * (1 - 1e-3)
         grid = np.zeros(int(np.prod(self.dims)), dtype=np.int8)
-        step = max(1, self.WRITE // len(occupied))  # offsets per write: few large writes, offset by offset
-        for label, offsets in ((1, off[near]), (2, off[sure])):  # maybe, then in
-            flat = offsets @ strides
-            for a in range(0, len(flat), step):
-                grid[(flat[a : a + step, None] + occupied).ravel()] = label
-        self.grid_t = torch.from_numpy(grid)
-        self.strides_t = torch.as_tensor(strides, dtype=torch.float64)  # flat index of whole cells, exact in float64
-        self.weight_t = torch.as_tensor(self.weight, dtype=torch.float64)
+        for label, offsets in ((1, off[near & ~sure]), (2, off[sure])):  # maybe, then in
+            flat = np.sort(offsets @ self.strides)
+            step = max(1, self.WRITE // len(flat))  # occupied cells per write
+            for a in range(0, len(occupied), step):
+                grid[(occupied[a : a + step, None] + flat).ravel()] = label
+        self.grid = grid
+        self.src_t = np.ascontiguousarray(self.src.numpy().T)  # (3, n) float32 or float64
+        self.weight_f = self.weight.astype(np.float64)
 
     def _states(self, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """(H, n) int8 cell states of the transformed points: 0 out, 1 maybe, 2 in. The cell coordinates
-        come from one matrix product, ``src (R / cell)^T + (t - origin) / cell``, which rounds a little
+        come from one matrix product, ``(R / cell) src + (t - origin) / cell``, which rounds a little
         differently from the scored points (well under a micrometre): the margin of the cell classes covers
         it. Points off the grid land on its border, whose cells are all *out*."""
         H, scale = R.shape[0], 1.0 / self.cell
-        origin = torch.as_tensor(self.origin, dtype=R.dtype, device=R.device)
-        g = self.src @ (R * scale).permute(2, 0, 1).reshape(3, 3 * H)  # (n, 3H): [p, (h, i)] = (R_h p)_i / cell
-        g = g.reshape(-1, H, 3).add_((t - origin) * scale)
-        hi = torch.as_tensor(self.dims - 1, dtype=g.dtype, device=g.device)
-        g = torch.minimum(g.floor_().clamp_(min=0.0), hi)
-        return self.grid_t[(g.double() @ self.strides_t).long()].T  # (H, n)
+        Rn, tn = R.numpy(), t.numpy()
+        g = (Rn * Rn.dtype.type(scale)).reshape(3 * H, 3) @ self.src_t  # (3H, n): [(h, i), p] = (R_h p)_i / cell
+        g = g.reshape(H, 3, -1)
+        g += ((tn - self.origin.astype(tn.dtype)) * tn.dtype.type(scale))[:, :, None]
+        np.clip(g, 0, (self.dims - 1).astype(g.dtype)[:, None], out=g)
+        cells = g.astype(np.int64)  # floor: g >= 0
+        flat = cells[:, 0] * self.strides[0] + cells[:, 1] * self.strides[1] + cells[:, 2]
+        return torch.from_numpy(self.grid.take(flat))
 
-    def _query(self, R: torch.Tensor, t: torch.Tensor, group: np.ndarray, pts_of: torch.Tensor
+    def _query(self, R: torch.Tensor, t: torch.Tensor, group: np.ndarray, pts_of: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """KD-tree distances of the points marked in ``pts_of`` (g, n) bool under hypotheses ``group`` (g,):
         each marked point's hypothesis (m,) (a place in ``group``), point (m,) and distance (m,) (inf beyond
         ``distance``), hypothesis by hypothesis in point order. The points are transformed as the reference
         scorer transforms them."""
         sel = torch.as_tensor(group)
-        q = self.src[None] @ R[sel].transpose(1, 2) + t[sel][:, None, :]  # (g, n, 3)
-        hyp, pts = torch.nonzero(pts_of, as_tuple=True)
-        d, _ = self.tree.query(q[hyp, pts].double().numpy(), k=1, distance_upper_bound=self.distance)
-        return hyp.numpy(), pts.numpy(), d
+        q = (self.src[None] @ R[sel].transpose(1, 2) + t[sel][:, None, :]).numpy()  # (g, n, 3)
+        hyp, pts = np.nonzero(pts_of)
+        d, _ = self.tree.query(q[hyp, pts].astype(np.float64), k=1, distance_upper_bound=self.distance)
+        return hyp, pts, d
 
-    def _squared_distances(self, hyp: np.ndarray, pts: np.ndarray, d: np.ndarray, g: int) -> np.ndarray:
-        """Summed weighted squared inlier distances (g,) of KD-tree results (m,) of :meth:`_query`, summed
-        point by point in the order given (np.bincount adds in order, as the reference's sum does)."""
-        inl = d < self.distance
-        return np.bincount(hyp, weights=np.where(inl, d * d, 0.0) * self.weight[pts], minlength=g)
-
-    def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-        H = R.shape[0]
-        self.scored += H
-        if self.grid_t is None:
-            if self.scored <= self.WARM:
-                return super().__call__(R, t, floor)
-            self._build()
-        states = self._states(R, t)
+    def counts(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> torch.Tensor:
+        """(H,) int64: the exact count of every hypothesis of R (H, 3, 3), t (H, 3) that can still be chosen
+        (reach ``floor`` and the batch's best count), -1 for the others."""
+        if self.grid is None or (not self.fine and self.scored > self.FINE_AFTER):
+            self._build(None if self.scored > self.FINE_AFTER else self.COARSE_CELLS_PER_DISTANCE)
+        states = self._states(R, t).numpy()
         maybe = states == 1
-        low = (states == 2).to(torch.float64) @ self.weight_t
-        high = (low + maybe.to(torch.float64) @ self.weight_t).long().numpy()
-        low = low.long().numpy()
-        count = np.full(H, -1, dtype=np.int64)
+        low = ((states == 2) @ self.weight_f).astype(np.int64)
+        high = low + (maybe @ self.weight_f).astype(np.int64)
+        count = np.full(R.shape[0], -1, dtype=np.int64)
         level = max(int(floor), int(low.max()))
         order = np.argsort(-high, kind="stable")
         todo = order[high[order] >= level]
-        found = []  # (hypotheses (g,), KD-tree results of their maybe points)
         for group in (todo[: self.TOP], todo[self.TOP :]):
             group = group[high[group] >= level]  # the bar may have risen
             if len(group) == 0:
                 continue
-            hyp, pts, d = self._query(R, t, group, maybe[torch.as_tensor(group)])
+            hyp, pts, d = self._query(R, t, group, maybe[group])
             wi = self.weight[pts] * (d < self.distance)
             count[group] = low[group] + np.bincount(hyp, weights=wi, minlength=len(group)).astype(np.int64)
             level = max(level, int(count[group].max()))
-            found.append((group, hyp, pts, d))
         count[(count >= 0) & (count < level)] = -1  # cannot be chosen
-        err = np.zeros(H, dtype=np.float64)
+        return torch.from_numpy(count)
+
+    def errors(self, R: torch.Tensor, t: torch.Tensor, top: np.ndarray) -> np.ndarray:
+        """Summed weighted squared inlier distances (k,) of hypotheses top (k,), the reference's sums bit for
+        bit: KD-tree distances of their *in* and *maybe* points, nothing for their *out* points (no inliers;
+        adding 0.0 leaves a sum unchanged), point by point in point order (np.bincount adds in order, as the
+        reference's sum does)."""
+        if self.grid is None:
+            self._build()
+        top = np.asarray(top)
+        hyp, pts, d = self._query(R, t, top, self._states(R[torch.as_tensor(top)], t[torch.as_tensor(top)]).numpy() > 0)
+        inl = d < self.distance
+        return np.bincount(hyp, weights=np.where(inl, d * d, 0.0) * self.weight[pts], minlength=len(top))
+
+    def score(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`counts` (H,) and None (ask :meth:`errors`) once the grid is built; until then (``WARM``) the
+        chunked scorer's counts and squared distances."""
+        self.scored += R.shape[0]
+        if self.grid is None and self.scored <= self.WARM:
+            return super().__call__(R, t, floor)
+        return self.counts(R, t, floor), None
+
+    def __call__(self, R: torch.Tensor, t: torch.Tensor, floor: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """Counts (H,) as :meth:`counts` and summed squared distances (H,) of the batch's best hypotheses
+        (0 for the others)."""
+        count = self.counts(R, t, floor)
+        err = np.zeros(R.shape[0], dtype=np.float64)
         best = int(count.max())
         if best >= 0:  # the RMSE tie-break needs the batch's best hypotheses' squared distances
-            top = np.nonzero(count == best)[0]
-            err[top] = self._top_errors(R, t, top, states, found)
-        return torch.as_tensor(count), torch.as_tensor(err)
-
-    def _top_errors(self, R: torch.Tensor, t: torch.Tensor, top: np.ndarray, states: torch.Tensor, found: list
-                    ) -> np.ndarray:
-        """Summed weighted squared inlier distances (k,) of hypotheses top (k,), the reference's sums bit for
-        bit: KD-tree distances of their *in* points, those of their *maybe* points found while counting, and
-        nothing for their *out* points (no inliers; adding 0.0 leaves a sum unchanged), in point order."""
-        hyp, pts, d = self._query(R, t, top, states[torch.as_tensor(top)] == 2)
-        parts = [(hyp, pts, d)]
-        place = np.full(states.shape[0], -1, dtype=np.int64)
-        place[top] = np.arange(len(top))
-        for group, g_hyp, g_pts, g_d in found:
-            at = place[group][g_hyp]  # each result's place in top, -1 for another hypothesis
-            parts.append((at[at >= 0], g_pts[at >= 0], g_d[at >= 0]))
-        hyp, pts, d = (np.concatenate(p) for p in zip(*parts))
-        order = np.lexsort((pts, hyp))  # hypothesis by hypothesis, in point order
-        return self._squared_distances(hyp[order], pts[order], d[order], len(top))
+            top = np.nonzero(count.numpy() == best)[0]
+            err[top] = self.errors(R, t, top)
+        return count, torch.from_numpy(err)
 
 
 def _overlap_scorer(src: np.ndarray, tgt: np.ndarray, cfg: RansacConfig, dtype, dev: torch.device) -> _OverlapScore:
@@ -562,8 +577,7 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
         overlap = _overlap_scorer(np.asarray(src_points, dtype=np.float64) - cs,
                                   np.asarray(tgt_points, dtype=np.float64) - cq, cfg, dtype, dev)
 
-    best_count, best_err2 = 0, math.inf
-    best_R = best_t = None
+    best = _Best(getattr(overlap, "errors", None))
     limit, drawn, batch, n_checked = cfg.max_iterations, 0, cfg.batch_size, 0
     log_fail = math.log(1.0 - cfg.confidence) if cfg.confidence < 1.0 else -math.inf
     while drawn < limit:
@@ -585,28 +599,21 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
             limit = drawn
         n_checked += R.shape[0]
         if overlap is not None:  # ranked by overlap; correspondence inliers only for the exit rule of a new best
-            count, err2 = overlap(R, t, best_count)
+            count, err2 = overlap.score(R, t, best.count)
         else:
             count, err2 = _score(R, t, feats, thr2)
-        cmax = int(count.max())
-        if cmax <= 0:
-            continue
-        cand = count == cmax
-        rmse2 = torch.where(cand, err2 / cmax, torch.full_like(err2, math.inf))
-        k = int(torch.argmin(rmse2))
-        r2 = float(rmse2[k])
-        if cmax > best_count or (cmax == best_count and r2 < best_err2):
-            best_count, best_err2 = cmax, r2
-            best_R, best_t = R[k].double().cpu().numpy(), t[k].double().cpu().numpy()
+        k = best.offer(R, t, count, err2)
+        if k is not None:
             n_corr = int(count[k]) if overlap is None else int(_score(R[k : k + 1], t[k : k + 1], feats, thr2)[0][0])
             w = n_corr / K  # Open3D's exit rule uses the correspondence inlier ratio
             if cfg.confidence < 1.0:
                 exit_itr = 0.0 if w >= 1.0 else log_fail / math.log(1.0 - w**n)
                 if exit_itr < cfg.max_iterations:
                     limit = min(limit, int(math.ceil(exit_itr)))
-    if best_R is None:
+    if best.R is None:
         return _identity_result(drawn)
 
+    best_R, best_t = best.R[0].double().cpu().numpy(), best.t[0].double().cpu().numpy()
     T = np.eye(4)
     T[:3, :3] = best_R
     T[:3, 3] = best_t + cq - best_R @ cs  # undo the centring
@@ -614,6 +621,45 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
     out = _evaluate(T, s64, q64, cfg.distance, drawn)
     out.n_checked = n_checked
     return out
+
+
+class _Best:
+    """The best hypothesis so far: its count, R (1, 3, 3), t (1, 3) and squared RMSE, the last computed only
+    where a tie needs it (``errors``: the scorer's :meth:`_GridOverlapScore.errors`, for scorers that give
+    counts alone)."""
+
+    def __init__(self, errors=None):
+        self.count, self._err2, self.R, self.t = 0, math.inf, None, None
+        self.errors = errors
+
+    def err2(self) -> float:
+        if self._err2 is None:
+            self._err2 = float(self.errors(self.R, self.t, np.zeros(1, dtype=np.int64))[0] / self.count)
+        return self._err2
+
+    def offer(self, R: torch.Tensor, t: torch.Tensor, count: torch.Tensor, err2: torch.Tensor | None) -> int | None:
+        """A batch's hypotheses R (H, 3, 3), t (H, 3) with their counts (H,) and summed squared distances (H,)
+        (None: ask ``errors`` where needed). Its best (most inliers, then lowest RMSE, then first) replaces the
+        best so far if it has more inliers, or as many with a lower RMSE: its place in the batch, else None."""
+        cmax = int(count.max())
+        if cmax <= 0:
+            return None
+        if err2 is None:
+            top = np.flatnonzero(count.numpy() == cmax)
+            if len(top) == 1 and cmax > self.count:  # no tie to break: its squared distances can wait
+                return self._take(R, t, int(top[0]), cmax, None)
+            err2 = torch.zeros(len(count), dtype=torch.float64)
+            err2[torch.from_numpy(top)] = torch.from_numpy(self.errors(R, t, top))
+        rmse2 = torch.where(count == cmax, err2 / cmax, torch.full_like(err2, math.inf))
+        k = int(torch.argmin(rmse2))
+        r2 = float(rmse2[k])
+        if cmax > self.count or (cmax == self.count and r2 < self.err2()):
+            return self._take(R, t, k, cmax, r2)
+        return None
+
+    def _take(self, R: torch.Tensor, t: torch.Tensor, k: int, count: int, err2: float | None) -> int:
+        self.count, self._err2, self.R, self.t = count, err2, R[k : k + 1], t[k : k + 1]
+        return k
 
 
 class _EdgeCheck:
