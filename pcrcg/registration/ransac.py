@@ -578,24 +578,20 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
                                   np.asarray(tgt_points, dtype=np.float64) - cq, cfg, dtype, dev)
 
     best = _Best(getattr(overlap, "errors", None))
-    limit, drawn, batch, n_checked = cfg.max_iterations, 0, cfg.batch_size, 0
+    draws = _Hypotheses(rng, K, n, edges, lambda idx: fit(S[idx], Q[idx], cfg.distance), cfg.batch_size,
+                        cfg.max_batch, _Hypotheses.WINDOW if use_numpy else 0, isinstance(seed, np.random.Generator))
+    limit, drawn, n_checked = cfg.max_iterations, 0, 0
     log_fail = math.log(1.0 - cfg.confidence) if cfg.confidence < 1.0 else -math.inf
     while drawn < limit:
-        b = min(batch, limit - drawn)
+        b, R, t, pos = draws.next(limit - drawn)  # pos: each hypothesis' place in the batch (draw order)
         drawn += b
-        batch = min(2 * batch, cfg.max_batch)
-        idx, pos = edges(rng.integers(0, K, size=(b, n)))  # pos: each survivor's place in the batch (draw order)
-        if idx.shape[0] == 0:
+        if R.shape[0] == 0:
             continue
-        R, t, ok = fit(S[idx], Q[idx], cfg.distance)
-        if not bool(ok.any()):
-            continue
-        R, t = R[ok], t[ok]
         if cfg.max_validation is not None and n_checked + R.shape[0] >= cfg.max_validation:
             # Open3D 0.10: the max_validation-th validated hypothesis is the last one scored
             keep = int(cfg.max_validation) - n_checked
             R, t = R[:keep], t[:keep]
-            drawn -= b - (int(pos[ok][keep - 1]) + 1)  # the draws up to and including it
+            drawn -= b - (int(pos[keep - 1]) + 1)  # the draws up to and including it
             limit = drawn
         n_checked += R.shape[0]
         if overlap is not None:  # ranked by overlap; correspondence inliers only for the exit rule of a new best
@@ -610,6 +606,7 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
                 exit_itr = 0.0 if w >= 1.0 else log_fail / math.log(1.0 - w**n)
                 if exit_itr < cfg.max_iterations:
                     limit = min(limit, int(math.ceil(exit_itr)))
+    draws.finish()
     if best.R is None:
         return _identity_result(drawn)
 
@@ -621,6 +618,59 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
     out = _evaluate(T, s64, q64, cfg.distance, drawn)
     out.n_checked = n_checked
     return out
+
+
+class _Hypotheses:
+    """The hypotheses of successive batches of draws (``batch`` draws, doubling up to ``max_batch``): samples
+    idx (b, n) of K correspondences drawn with ``rng``, edge-checked (``check``: :class:`_EdgeCheck`) and
+    fitted and distance-checked (``fit``: idx (m, n) -> R (m, 3, 3), t (m, 3), ok (m,)) a window of batches
+    at a time (up to ``window`` draws: fewer, larger calls; a sample's checks and fit do not depend on the
+    others), handed out batch by batch. The draws are those of one batch at a time (NumPy draws the same
+    numbers in one call as in several); ``finish`` puts a caller's generator where drawing batch by batch
+    would have left it."""
+
+    WINDOW = 8192  # the batches of 32 ... 4096 draws together
+
+    def __init__(self, rng: np.random.Generator, K: int, n: int, check, fit, batch: int, max_batch: int,
+                 window: int, callers_rng: bool):
+        self.rng, self.K, self.n, self.check, self.fit = rng, K, n, check, fit
+        self.batch, self.max_batch, self.window, self.callers_rng = batch, max_batch, window, callers_rng
+        self.rows = self.cursor = 0  # draws in the window, draws of it handed out
+
+    def next(self, left: int) -> tuple[int, torch.Tensor, torch.Tensor, np.ndarray]:
+        """The next batch, of at most ``left`` draws: its size b, its hypotheses that pass both checkers R (h, 3, 3),
+        t (h, 3) and their places in the batch (h,) int64, in draw order."""
+        b = min(self.batch, left)
+        self.batch = min(2 * self.batch, self.max_batch)
+        if self.cursor == self.rows:
+            self._draw(b, left)
+        a = self.cursor
+        self.cursor += b
+        lo, hi = np.searchsorted(self.pos, [a, a + b])
+        return b, self.R[lo:hi], self.t[lo:hi], self.pos[lo:hi] - a
+
+    def _draw(self, b: int, left: int) -> None:
+        """Draws, checks and fits the next window: a batch of b draws and the whole batches after it within
+        ``window`` draws and ``left``."""
+        rows, size, left = b, self.batch, left - b
+        while left > 0 and rows + min(size, left) <= self.window:
+            rows, left = rows + min(size, left), left - min(size, left)
+            size = min(2 * size, self.max_batch)
+        if self.callers_rng:
+            self.state = self.rng.bit_generator.state
+        idx, pos = self.check(self.rng.integers(0, self.K, size=(rows, self.n)))
+        self.rows, self.cursor = rows, 0
+        self.R = self.t = torch.zeros(0)
+        self.pos = np.zeros(0, dtype=np.int64)
+        if idx.shape[0]:
+            R, t, ok = self.fit(idx)
+            self.R, self.t, self.pos = R[ok], t[ok], pos[ok].cpu().numpy()
+
+    def finish(self) -> None:
+        """Rewinds a caller's generator to just after the draws handed out."""
+        if self.callers_rng and self.cursor < self.rows:
+            self.rng.bit_generator.state = self.state
+            self.rng.integers(0, self.K, size=(self.cursor, self.n))
 
 
 class _Best:
