@@ -622,14 +622,15 @@ def _ransac(src_points, tgt_points, correspondences, cfg, seed, device, fast: bo
 
 class _Hypotheses:
     """The hypotheses of successive batches of draws (``batch`` draws, doubling up to ``max_batch``): samples
-    idx (b, n) of K correspondences drawn with ``rng``, edge-checked (``check``: :class:`_EdgeCheck`) and
-    fitted and distance-checked (``fit``: idx (m, n) -> R (m, 3, 3), t (m, 3), ok (m,)) a window of batches
-    at a time (up to ``window`` draws: fewer, larger calls; a sample's checks and fit do not depend on the
-    others), handed out batch by batch. The draws are those of one batch at a time (NumPy draws the same
-    numbers in one call as in several); ``finish`` puts a caller's generator where drawing batch by batch
-    would have left it."""
+    idx (b, n) of K correspondences drawn with ``rng``, edge-checked (``check``: :class:`_EdgeCheck`) a window
+    of batches at a time (up to ``window`` draws) and fitted and distance-checked (``fit``: idx (m, n) -> R
+    (m, 3, 3), t (m, 3), ok (m,)) at least ``FIT`` edge-checked samples at a time (fewer, larger calls; a
+    sample's checks and fit do not depend on the others), handed out batch by batch. The draws are those of one
+    batch at a time (NumPy draws the same numbers in one call as in several); ``finish`` puts a caller's
+    generator where drawing batch by batch would have left it."""
 
-    WINDOW = 8192  # the batches of 32 ... 4096 draws together
+    WINDOW = 8192  # the batches of 32 ... 4096 draws edge-checked together
+    FIT = 32  # samples fitted together at least (an easy pair stops after a few dozen hypotheses)
 
     def __init__(self, rng: np.random.Generator, K: int, n: int, check, fit, batch: int, max_batch: int,
                  window: int, callers_rng: bool):
@@ -647,10 +648,15 @@ class _Hypotheses:
         a = self.cursor
         self.cursor += b
         lo, hi = np.searchsorted(self.pos, [a, a + b])
-        return b, self.R[lo:hi], self.t[lo:hi], self.pos[lo:hi] - a
+        if hi > self.fitted:  # fit this batch's samples and at least FIT in all
+            end = min(len(self.pos), max(hi, self.fitted + (self.FIT if self.window else 0)))
+            self.R[self.fitted : end], self.t[self.fitted : end], self.ok[self.fitted : end] = self.fit(self.idx[self.fitted : end])
+            self.fitted = end
+        ok = self.ok[lo:hi]
+        return b, self.R[lo:hi][ok], self.t[lo:hi][ok], self.pos[lo:hi][ok.cpu().numpy()] - a
 
     def _draw(self, b: int, left: int) -> None:
-        """Draws, checks and fits the next window: a batch of b draws and the whole batches after it within
+        """Draws and edge-checks the next window: a batch of b draws and the whole batches after it within
         ``window`` draws and ``left``."""
         rows, size, left = b, self.batch, left - b
         while left > 0 and rows + min(size, left) <= self.window:
@@ -658,13 +664,13 @@ class _Hypotheses:
             size = min(2 * size, self.max_batch)
         if self.callers_rng:
             self.state = self.rng.bit_generator.state
-        idx, pos = self.check(self.rng.integers(0, self.K, size=(rows, self.n)))
-        self.rows, self.cursor = rows, 0
-        self.R = self.t = torch.zeros(0)
-        self.pos = np.zeros(0, dtype=np.int64)
-        if idx.shape[0]:
-            R, t, ok = self.fit(idx)
-            self.R, self.t, self.pos = R[ok], t[ok], pos[ok].cpu().numpy()
+        self.idx, pos = self.check(self.rng.integers(0, self.K, size=(rows, self.n)))
+        self.pos = pos.cpu().numpy()
+        self.rows, self.cursor, self.fitted = rows, 0, 0
+        S = self.check.S
+        self.R = torch.empty(len(self.pos), 3, 3, dtype=S.dtype, device=S.device)
+        self.t = torch.empty(len(self.pos), 3, dtype=S.dtype, device=S.device)
+        self.ok = torch.empty(len(self.pos), dtype=torch.bool, device=S.device)
 
     def finish(self) -> None:
         """Rewinds a caller's generator to just after the draws handed out."""
