@@ -100,7 +100,7 @@ def test_unique_rows_is_np_unique():
 
 def _grid_offset_by_offset(grid: _GridOverlapScore) -> np.ndarray:
     """The grid as the previous implementation built it (one write per offset)."""
-    c, reach, origin, dims = grid._frame(grid.tree.data, grid.distance)
+    c, reach, origin, dims, _ = grid._frame(grid.tree.data, grid.distance)
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     occupied = np.unique(np.floor((grid.tree.data - origin) / c).astype(np.int64) @ strides)
     r = np.arange(-reach, reach + 1)
@@ -186,3 +186,29 @@ def test_coarse_grid_first_gives_the_same_results(monkeypatch):
         results.append((r.transform, r.iterations, r.n_checked, r.n_inliers, r.inlier_rmse))
     for r in results[1:]:
         assert np.array_equal(r[0], results[0][0]) and r[1:] == results[0][1:]
+
+
+def test_grid_of_a_box_with_far_off_target_points_is_exact():
+    """Target points far off (bad depth) make the box too large: the grid covers the central points, ringed by
+    *maybe* cells; its classes stay exact (points near the far ones included) and RANSAC's results the same."""
+    rng = np.random.default_rng(13)
+    src, tgt, corr = _problem(13, 1500, 0.3)
+    tgt = tgt.copy()
+    tgt[:6] = rng.uniform(-1, 1, size=(6, 3)) + [0.0, 0.0, 70.0]  # 70 m off
+    grid = _GridOverlapScore(src, tgt, 0.05, torch.float32, torch.device("cpu"))
+    assert grid._frame(grid.tree.data, 0.05)[4] > 0  # the band
+    grid._build()
+    pts = np.concatenate([tgt[rng.integers(0, len(tgt), 3000)] + rng.normal(scale=0.03, size=(3000, 3)),
+                          tgt[:6] + rng.normal(scale=0.02, size=(6, 3))])  # near the far points too
+    probe = _GridOverlapScore(pts, tgt, 0.05, torch.float32, torch.device("cpu"))
+    probe.__dict__.update({k: getattr(grid, k) for k in ("grid", "origin", "dims", "cell", "strides")})
+    probe.src_t = np.ascontiguousarray(probe.src.numpy().T)
+    states = probe._states(torch.eye(3)[None], torch.zeros(1, 3))[0].numpy()
+    true, _ = grid.tree.query(probe.src.double().numpy(), k=1)
+    assert (true[states == 2] < 0.05).all() and (true[states == 0] >= 0.05).all()
+    far = probe.src[:, 2].numpy() > 60
+    assert far.sum() >= 6 and (states[far] > 0).all() and (states == 2).mean() > 0.05  # near the far points: maybe
+    cfg = RansacConfig(max_iterations=5000, max_validation=200, confidence=1.0)
+    a = ransac(src, tgt, corr, cfg, seed=4)
+    b = ransac(src, tgt, corr, RansacConfig(prune=False, max_iterations=5000, max_validation=200, confidence=1.0), seed=4)
+    assert np.array_equal(a.transform, b.transform) and (a.iterations, a.n_checked) == (b.iterations, b.n_checked)

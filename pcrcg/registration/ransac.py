@@ -372,24 +372,32 @@ class _GridOverlapScore(_PrunedOverlapScore):
     COARSE_CELLS_PER_DISTANCE = 3  # until FINE_AFTER hypotheses have been scored
     FINE_AFTER = 128
     MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m in cells of 1/4 of Predator's 5 cm
+    GROW = 0.5  # metres around the central 99 % of the target points, for a box too large for MAX_CELLS
     TOP = 8  # hypotheses counted exactly first, to raise the bar for the others
     WARM = 0  # hypotheses scored by the chunked scorer before the grid is built (16 was slower on the benchmark)
     WRITE = 1 << 15  # cells marked per NumPy write while building (one offset per write was slower for small N)
 
     @classmethod
     def _frame(cls, tgt: np.ndarray, distance: float, cells: int | None = None
-               ) -> tuple[float, int, np.ndarray, np.ndarray] | None:
-        """Cell edge, reach in cells, origin (3,) and grid shape (3,) for target points tgt (M, 3): cells of
-        ``distance / cells`` (``CELLS_PER_DISTANCE``), coarser (down to ``distance / 2``) where that grid would
-        have more than ``MAX_CELLS`` cells; None where even that one would."""
+               ) -> tuple[float, int, np.ndarray, np.ndarray, int] | None:
+        """Cell edge, reach in cells, origin (3,), grid shape (3,) and band (cells) for target points tgt (M, 3):
+        cells of ``distance / cells`` (``CELLS_PER_DISTANCE``), coarser (down to ``distance / 2``) where that grid
+        would have more than ``MAX_CELLS`` cells. Where even that one would (a few target points far off, as
+        bad depth gives), a grid of the box of the central 99 % of the target points (grown by up to ``GROW``):
+        its outer ``band`` cells are *maybe* (:meth:`_build`); None where that one is too large too."""
         lo, hi = np.min(tgt, axis=0), np.max(tgt, axis=0)
-        for k in range(cells or cls.CELLS_PER_DISTANCE, 1, -1):
-            c = distance / k
-            reach = k + 1
-            origin = lo - (reach + 1) * c  # a border of cells farther than ``distance`` from every target point
-            dims = np.ceil((hi + (reach + 1) * c - origin) / c).astype(np.int64) + 1
-            if int(np.prod(dims)) <= cls.MAX_CELLS:
-                return c, reach, origin, dims
+        for band in (0, 1):
+            if band:  # the box of the central 99 % of the target points (grown by up to GROW)
+                q_lo, q_hi = np.quantile(tgt, [0.005, 0.995], axis=0)
+                lo, hi = np.maximum(lo, q_lo - cls.GROW), np.minimum(hi, q_hi + cls.GROW)
+            for k in range(cells or cls.CELLS_PER_DISTANCE, 1, -1):
+                c = distance / k
+                reach = k + 1
+                border = (2 * reach + 3) if band else (reach + 1)  # cells farther than ``distance`` from every target point
+                origin = lo - border * c
+                dims = np.ceil((hi + border * c - origin) / c).astype(np.int64) + 1
+                if int(np.prod(dims)) <= cls.MAX_CELLS:
+                    return c, reach, origin, dims, (2 * reach + 2) * band
         return None
 
     @classmethod
@@ -408,16 +416,23 @@ class _GridOverlapScore(_PrunedOverlapScore):
         distance = self.distance
         tgt_u = self.tree.data
         self.fine = cells is None
-        c, reach, self.origin, self.dims = self._frame(tgt_u, distance, cells)
+        c, reach, self.origin, self.dims, band = self._frame(tgt_u, distance, cells)
         self.cell = c
         self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
-        occupied = np.unique(np.floor((tgt_u - self.origin) / c).astype(np.int64) @ self.strides)
+        at = np.floor((tgt_u - self.origin) / c).astype(np.int64)
+        if band:  # target points whose cells' reach leaves the grid are left out; the band covers their reach
+            at = at[np.all((at > reach) & (at < self.dims - 1 - reach), axis=1)]
+        occupied = np.unique(at @ self.strides)
         r = np.arange(-reach, reach + 1)
         off = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
         # a cell pair whose nearest points are within ``distance`` / whose farthest points are nearer than it
         near = np.linalg.norm(np.maximum(np.abs(off) - 1, 0), axis=1) * c <= distance * (1 + 1e-3)
         sure = np.linalg.norm(np.abs(off) + 1, axis=1) * c < distance * (1 - 1e-3)
         grid = np.zeros(int(np.prod(self.dims)), dtype=np.int8)
+        if band:  # cells within reach of the target points left out, and the border (points off the grid): maybe
+            inner = grid.reshape(tuple(self.dims))
+            inner[...] = 1
+            inner[band:-band, band:-band, band:-band] = 0
         for label, offsets in ((1, off[near & ~sure]), (2, off[sure])):  # maybe, then in
             flat = np.sort(offsets @ self.strides)
             step = max(1, self.WRITE // len(flat))  # occupied cells per write
