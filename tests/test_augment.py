@@ -9,7 +9,7 @@ import torch
 from pcrcg.data.augment import augment_pair
 from pcrcg.geometry import rotation_angle_deg, transform_points
 from pcrcg.lifting import ColorLifter, LiftingConfig, lift_pair
-from pcrcg.lifting.toyscene import make_pair
+from pcrcg.testing.scenes import make_pair
 from pcrcg.vision.matching import MatcherConfig, match_views
 
 

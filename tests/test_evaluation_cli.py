@@ -18,7 +18,9 @@ from pcrcg.evaluation import evaluate_model_outputs, information_matrix, load_be
 from pcrcg.evaluation.metrics import SceneGT, rotation_error_deg
 from pcrcg.geometry import axis_angle_to_matrix, make_transform
 from pcrcg.registration import RansacConfig, RegistrationConfig
-from pcrcg.registration.synthetic import box_room, make_fragment_pair, simulate_outputs, write_layout
+from pcrcg.testing.layouts import write_layout
+from pcrcg.testing.pairs import make_fragment_pair, simulate_outputs
+from pcrcg.testing.rooms import box_room
 
 REPO = Path(__file__).resolve().parents[1]
 

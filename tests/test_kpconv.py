@@ -21,7 +21,7 @@ from pcrcg.models.kpconv import (
     stack_pair,
 )
 from pcrcg.models.kpconv.ops import nearest_neighbor, radius_pairs
-from pcrcg.models.toy import box_room
+from pcrcg.testing.rooms import box_room
 
 
 def test_kernel_disposition_is_deterministic_and_well_spread():
@@ -123,7 +123,7 @@ def test_radius_pairs():
 
 @pytest.fixture(scope="module")
 def room():
-    return box_room(np.random.default_rng(0), density=300.0)
+    return box_room(np.random.default_rng(0), size=(3.0, 2.5, 2.0), density=300.0)[0]
 
 
 def test_pyramid_levels_and_shadow_convention(room):

@@ -18,7 +18,7 @@ from pcrcg.lifting import (
     pair_coverage,
     window_weight_map,
 )
-from pcrcg.lifting.toyscene import make_pair
+from pcrcg.testing.scenes import make_pair
 from pcrcg.vision.encoders import ResUNet
 from pcrcg.vision.features import FeatureExtractor
 from pcrcg.vision.matching import MatcherConfig, match_views

@@ -20,7 +20,7 @@ def real_pair():
     from pcrcg.data.dataset import PairSample, View
     from pcrcg.data.layout import read_color, read_depth, read_intrinsics, read_pose
     from pcrcg.geometry import backproject, invert, transform_points
-    from pcrcg.lifting.toyscene import voxel_mean
+    from pcrcg.data.fusion import voxel_average
 
     K = read_intrinsics(FRAMES / "camera-intrinsics.txt")
 
@@ -40,7 +40,8 @@ def real_pair():
         for i in (ids[0], ids[-1], ids[(len(ids) - 1) // 2]):
             c, d, P, path = frames[i]
             views.append(View(c, d, K.copy(), world_to_frag @ P, i, path))
-        return voxel_mean(np.concatenate(pts), 0.03), views, frames[ids[0]][2]
+        pts = np.concatenate(pts)
+        return voxel_average(pts, np.zeros_like(pts), 0.03)[0], views, frames[ids[0]][2]
 
     tgt_pts, tgt_views, tgt_first = fragment(list(range(8, 28)))
     src_pts, src_views, src_first = fragment(list(range(28, 48)))

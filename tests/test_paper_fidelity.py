@@ -72,7 +72,7 @@ def test_predator_variant_reaches_the_classical_methods(tmp_path):
     from pcrcg.evaluation.metrics import load_benchmark
     from pcrcg.evaluation.stage import run_classical
     from pcrcg.data.layout import Layout
-    from pcrcg.registration.synthetic import write_layout
+    from pcrcg.testing.layouts import write_layout
 
     from pcrcg.evaluation.model import subset
 
@@ -107,7 +107,7 @@ def test_circle_loss_scale_is_the_one_the_official_trainings_ran_with():
 
 def _ransac_problem(K=400, seed=0):
     from pcrcg.geometry import make_transform, random_rotation, transform_points
-    from pcrcg.registration.synthetic import box_room
+    from pcrcg.testing.rooms import box_room
 
     rng = np.random.default_rng(seed)
     pts, _ = box_room(rng, 3 * K)
@@ -259,7 +259,7 @@ def _views():
 def test_the_2d_branch_is_detached_by_default_and_end_to_end_is_a_setting():
     from test_training import MODEL, _color_batch, _lifting
 
-    from pcrcg.lifting.toyscene import make_pair
+    from pcrcg.testing.scenes import make_pair
     from pcrcg.models.module import PCRCGModule, training_2d
 
     cfg = _run_cfg("features=deep", "projection=implicit")

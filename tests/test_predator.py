@@ -21,7 +21,7 @@ from pcrcg.models.losses import (
     weighted_bce,
 )
 from pcrcg.models.predator import CrossAttention, Predator, PredatorConfig, build_predator, knn_indices
-from pcrcg.models.toy import toy_pair
+from pcrcg.testing.pairs import toy_pair
 
 TINY = dict(voxel_size=0.12, num_layers=3, first_dim=16, final_dim=8, gnn_dim=16, num_heads=2, dgcnn_k=4)
 

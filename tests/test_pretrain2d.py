@@ -17,7 +17,7 @@ import torch
 from pcrcg.data.layout import Layout, frame_paths, write_color, write_depth, write_matrix, write_split
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.geometry import backproject, invert, look_at, project, transform_points
-from pcrcg.lifting.toyscene import ToyRoom, camera_path, render, toy_intrinsics
+from pcrcg.testing.scenes import ToyRoom, pan_path, render, toy_intrinsics
 from pcrcg.vision.pretrain import (
     color_jitter,
     crop_pair,
@@ -115,7 +115,7 @@ def test_identity_pose_matches_every_pixel_to_itself_and_holes_are_rejected(room
 
 def test_view_pairs_follow_frame_gap_and_overlap(room):
     K = toy_intrinsics(W, H)
-    poses = camera_path(np.array([1.2, 1.0, 1.5]), 0.0, 90.0, 10)  # 10 degrees per frame
+    poses = pan_path(np.array([1.2, 1.0, 1.5]), 0.0, 90.0, 10)  # 10 degrees per frame
     depths = [render(room, P, K, W, H)[1] for P in poses]
     allp = select_view_pairs(depths, np.stack(poses), K, 1, 9, 0.0, 1.0, stride=4)
     assert len(allp) == 45
@@ -234,8 +234,8 @@ def write_rgbd_layout(root: Path, scenes=("toy-a", "toy-b", "toy-c"), frames: in
     K = toy_intrinsics(width, height)
     for k, scene in enumerate(scenes):
         room = ToyRoom(seed=k)
-        poses = camera_path(np.array([1.2, 1.0, 1.5]) + 0.1 * k, 0.0 + 10 * k, 70.0 + 10 * k, frames,
-                            step=[0.03, 0.02, 0.0])
+        poses = pan_path(np.array([1.2, 1.0, 1.5]) + 0.1 * k, 0.0 + 10 * k, 70.0 + 10 * k, frames,
+                         step=[0.03, 0.02, 0.0])
         seq_dir = layout.rgbd_dir(scene) / "seq-01"
         seq_dir.mkdir(parents=True, exist_ok=True)
         write_matrix(layout.intrinsics(scene), K)

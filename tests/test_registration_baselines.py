@@ -11,7 +11,8 @@ from pcrcg.data.dataset import View
 from pcrcg.evaluation.metrics import information_matrix, registration_error, rotation_error_deg
 from pcrcg.geometry import axis_angle_to_matrix, invert, make_transform, project, transform_points
 from pcrcg.registration import BaselineConfig, lift_pixels, register_pair
-from pcrcg.registration.synthetic import box_room, make_fragment_pair
+from pcrcg.testing.pairs import make_fragment_pair
+from pcrcg.testing.rooms import box_room
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 FRAMES = SHARED / "data" / "real-rgbd" / "redkitchen-frames"

@@ -18,7 +18,7 @@ from pcrcg.registration import FragmentOutput, RegistrationConfig, register_feat
 from pcrcg.registration.matching import first_occurrences, match_descriptors
 from pcrcg.registration.ransac import (RansacConfig, _GridOverlapScore, _OverlapScore, _PrunedOverlapScore,
                                       ransac)
-from pcrcg.registration.synthetic import correspondence_problem
+from pcrcg.testing.pairs import correspondence_problem
 
 
 def test_first_occurrences_maps_every_row_to_its_ids_first_position():

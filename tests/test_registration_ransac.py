@@ -20,7 +20,8 @@ from pcrcg.registration import (
     register_features,
     sample_indices,
 )
-from pcrcg.registration.synthetic import box_room, make_fragment_pair, simulate_outputs
+from pcrcg.testing.pairs import make_fragment_pair, simulate_outputs
+from pcrcg.testing.rooms import box_room
 
 
 def _problem(seed: int, K: int = 2000, inlier_ratio: float = 0.5, noise: float = 0.01):

@@ -221,7 +221,8 @@ def test_pair_rows_from_estimates_reproduce_the_metrics(tmp_path):
 def test_evaluate_model_outputs_writes_the_per_pair_inlier_ratios(tmp_path):
     from pcrcg.evaluation import evaluate_model_outputs
     from pcrcg.registration import RansacConfig, RegistrationConfig
-    from pcrcg.registration.synthetic import box_room, make_fragment_pair, simulate_outputs
+    from pcrcg.testing.pairs import make_fragment_pair, simulate_outputs
+    from pcrcg.testing.rooms import box_room
 
     rng = np.random.default_rng(0)
     pts, cols = box_room(rng, 20000)
@@ -270,7 +271,7 @@ def test_a_pipeline_run_logs_its_per_pair_outcomes_and_the_report_uses_them(tmp_
     from mlflow.tracking import MlflowClient
 
     from pcrcg import run as run_mod
-    from pcrcg.registration.synthetic import write_layout
+    from pcrcg.testing.layouts import write_layout
 
     data = write_layout(tmp_path / "data", seed=0, n_fragments=5, voxel=0.05, n_points=6000)
     uri = f"sqlite:///{tmp_path}/mlflow.db"

@@ -25,7 +25,7 @@ from pcrcg.models.kpconv import (
 from pcrcg.models.kpconv.blocks import PointNorm, max_over_neighbours, max_pool, max_pool_reference, normalize_channels
 from pcrcg.models.kpconv.conv import kernel_influence
 from pcrcg.models.predator import build_predator
-from pcrcg.models.toy import toy_pair
+from pcrcg.testing.pairs import toy_pair
 
 
 def _geometry(seed: int, n: int = 300, strided: bool = False, dtype=np.float32):

@@ -16,7 +16,7 @@ from pcrcg.data.layout import PairRecord, write_gt_log, write_pairs, write_ply
 from pcrcg.models.datamodule import PairCollate, PairDataModule
 from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
 from pcrcg.models.module import PCRCGModule
-from pcrcg.models.toy import toy_pair
+from pcrcg.testing.pairs import toy_pair
 from pcrcg.models.train import infer, infer_clouds, load_module, load_pair_output, save_pair_output, train
 
 VOXEL, DENSITY = 0.15, 100.0
@@ -215,9 +215,9 @@ def _lifting(projection: str, features: str, **feat):
 
 @pytest.fixture(scope="module")
 def color_pair():
-    from pcrcg.lifting import toyscene as lifting_toy  # first-party: an ImportError must fail, not skip
+    from pcrcg.testing import scenes  # first-party: an ImportError must fail, not skip
 
-    return lifting_toy.make_pair(0, width=80, height=60, frames=3, voxel=0.05)
+    return scenes.make_pair(0, width=80, height=60, frames=3, voxel=0.05)
 
 
 def _color_batch(sample, voxel=0.1):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from pcrcg.errors import ConfigError
-from pcrcg.lifting.toyscene import make_pair
+from pcrcg.testing.scenes import make_pair
 from pcrcg.vision.encoders import ResUNet
 from pcrcg.vision.features import FeatureExtractor, build_feature_extractor, dense_sift_map, rgb_map, sift_projection
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pcrcg.errors import ConfigError, DataError
-from pcrcg.lifting.toyscene import make_pair
+from pcrcg.testing.scenes import make_pair
 from pcrcg.vision import learned
 from pcrcg.vision.matching import (
     MatchCache,

@@ -9,7 +9,7 @@ import pytest
 
 from pcrcg.errors import ConfigError
 from pcrcg.geometry import invert, project, transform_points
-from pcrcg.lifting.toyscene import make_pair
+from pcrcg.testing.scenes import make_pair
 from pcrcg.vision.matching import MatchCache, MatcherConfig, Matches, match_images, match_views, view_pairs
 
 

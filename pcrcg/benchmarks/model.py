@@ -110,7 +110,7 @@ def _samples(root: Path | None, voxel: float, n: int, n_views: int) -> tuple[lis
         ds = PairDataset(root, "train", n_views)
         step = max(1, len(ds) // n)
         return [ds[k] for k in range(0, min(len(ds), step * n), step)][:n], f"{root} (train pairs)"
-    from pcrcg.models.toy import toy_pair
+    from pcrcg.testing.pairs import toy_pair
 
     density = 2.0 / voxel**2
     return ([toy_pair(k, size=(4.0, 3.5, 2.6), density=density) for k in range(n)],

@@ -100,7 +100,7 @@ def _frame_clouds(rng: np.random.Generator, n_pairs: int):
 
 def _room_clouds(rng: np.random.Generator, n_pairs: int):
     """Fallback without ../shared: a synthetic room, split into overlapping parts."""
-    from pcrcg.registration.synthetic import box_room
+    from pcrcg.testing.rooms import box_room
 
     room, _ = box_room(rng, 120000)
     lo, hi = room[:, 0].min(), room[:, 0].max()

@@ -33,7 +33,7 @@ def _time(fn: Callable[[], Any], reps: int) -> float:
 
 
 def bench_matcher(reps: int = 3, sizes: Sequence[tuple[int, int]] = ((120, 160), (240, 320), (480, 640))) -> list[dict]:
-    from pcrcg.lifting.toyscene import make_pair
+    from pcrcg.testing.scenes import make_pair
     from pcrcg.vision.matching import MatcherConfig, match_images
 
     rows = []
@@ -59,7 +59,7 @@ def bench_lifting(reps: int = 3, points: Sequence[int] = (2000, 10000, 30000, 10
 
     from pcrcg.lifting import ColorLifter, LiftingConfig, lift_pair
     from pcrcg.lifting.projection import keypoints_per_view
-    from pcrcg.lifting.toyscene import make_pair
+    from pcrcg.testing.scenes import make_pair
     from pcrcg.vision.matching import MatcherConfig, match_views
 
     base = make_pair(0)

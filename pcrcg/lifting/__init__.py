@@ -25,7 +25,7 @@ Public API
   ``encoder2d``, ``matcher2d``.
 * :mod:`pcrcg.lifting.coverage`: ``coverage_sweep`` (views 1/2/3 and windows 3/7/11/17) and its CLI
   ``python -m pcrcg.lifting.coverage [data.root=DIR split=val n_pairs=8]``.
-* :mod:`pcrcg.lifting.toyscene`: a ray-cast RGB-D toy room with known geometry (``make_pair``).
+* the ray-cast RGB-D toy room the tests use is a fixture, :mod:`pcrcg.testing.scenes` (``make_pair``).
 
 Semantics (see :mod:`pcrcg.lifting.projection`): a point takes a view's feature only when it
 projects inside the image, in front of the camera, where the depth map agrees within

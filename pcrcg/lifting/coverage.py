@@ -2,7 +2,7 @@
 
 ``python -m pcrcg.lifting.coverage data.root=data/synthmatch-tiny split=val n_pairs=8``
 prints one row per setting and whether coverage grows as the paper says (views 1 < 2 <= 3,
-windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrcg.lifting.toyscene`).
+windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrcg.testing.scenes`).
 Other keys: ``views=[1,2,3] windows=[3,7,11,17] base_views=2 base_window=11
 depth_tolerance=0.1 image_size=null method=sift|orb|lightglue pairs=paper|all|covisible cache_dir=cache/matches``.
 Coverage depends only on geometry and matches, so no feature map is computed.
@@ -105,7 +105,7 @@ def format_rows(rows: Sequence[CoverageRow]) -> str:
 def load_samples(root: str | None, split: str, n_pairs: int, n_views: int = 3, seed: int = 0) -> list[Any]:
     """Up to ``n_pairs`` pairs of a data set (evenly spread), or toy pairs when ``root`` is None."""
     if root is None:
-        from pcrcg.lifting.toyscene import make_pair
+        from pcrcg.testing.scenes import make_pair
 
         return [make_pair(seed + k) for k in range(n_pairs)]
     from pcrcg.data.dataset import PairDataset
@@ -138,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> list[CoverageRow]:
         cache=MatchCache(cache_dir) if cache_dir else None,
         progress=True,
     )
-    print(f"data: {root or 'toy scene (pcrcg.lifting.toyscene)'}")
+    print(f"data: {root or 'toy scene (pcrcg.testing.scenes)'}")
     print(format_rows(rows))
     for claim, ok in check_growth(rows).items():
         print(f"{'OK  ' if ok else 'FAIL'} {claim}")

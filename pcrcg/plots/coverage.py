@@ -6,7 +6,7 @@ One panel per number of views (1, 2, 3: first, first+last, first+last+middle fra
 receive a 2D feature keep their color; points that receive none are black (as in the paper).
 Other keys: ``split=val pair=0 fragment=tgt|src projection=implicit|explicit window_size=11
 depth_tolerance=0.1 image_size=null point_size=2 method=sift cache_dir=cache/matches``.
-Without ``data.root`` the figure is drawn for a toy pair (:mod:`pcrcg.lifting.toyscene`).
+Without ``data.root`` the figure is drawn for a toy pair (:mod:`pcrcg.testing.scenes`).
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     if fragment not in ("src", "tgt"):
         raise SystemExit(f"fragment must be src or tgt, got {fragment}")
     if root is None:
-        from pcrcg.lifting.toyscene import make_pair
+        from pcrcg.testing.scenes import make_pair
 
         sample = make_pair(k)
         where = f"toy pair {k}"
