@@ -16,8 +16,9 @@ import torch
 
 from pcrcg.geometry import random_rotation
 from pcrcg.registration.ransac import (RansacConfig, _Best, _EdgeCheck, _fit_and_check_distance,
-                                      _fit_and_check_distance_cpu, _GridOverlapScore, _unique_rows, ransac)
-from pcrcg.testing.pairs import correspondence_problem
+                                      _fit_and_check_distance_cpu, _GridOverlapScore, _Hypotheses, _unique_rows,
+                                      ransac)
+from pcrcg.registration.synthetic import correspondence_problem
 
 
 def _problem(seed: int, n: int, inlier_ratio: float):
@@ -212,3 +213,27 @@ def test_grid_of_a_box_with_far_off_target_points_is_exact():
     a = ransac(src, tgt, corr, cfg, seed=4)
     b = ransac(src, tgt, corr, RansacConfig(prune=False, max_iterations=5000, max_validation=200, confidence=1.0), seed=4)
     assert np.array_equal(a.transform, b.transform) and (a.iterations, a.n_checked) == (b.iterations, b.n_checked)
+
+
+@pytest.mark.parametrize("window,fit", [(0, 0), (2048, 1), (1 << 20, 1000)])
+def test_hypotheses_drawn_checked_and_fitted_by_windows_are_those_of_single_batches(window, fit, monkeypatch):
+    """The same results with windows of draws edge-checked together and samples fitted together as batch by
+    batch (window 0), and a caller's generator left where batch-by-batch drawing leaves it (an early exit
+    inside a window included)."""
+    monkeypatch.setattr(_Hypotheses, "WINDOW", window)
+    monkeypatch.setattr(_Hypotheses, "FIT", fit)
+    out = []
+    for seed, ratio in ((14, 0.4), (15, 0.08)):  # an early exit, and a run through max_iterations
+        src, tgt, corr = _problem(seed, 700, ratio)
+        rng = np.random.default_rng(seed)
+        r = ransac(src, tgt, corr, RansacConfig(max_iterations=6000), seed=rng)
+        out.append((r.transform, r.iterations, r.n_checked, r.n_inliers, rng.integers(1 << 30)))
+    monkeypatch.setattr(_Hypotheses, "WINDOW", 0)
+    monkeypatch.setattr(_Hypotheses, "FIT", 0)
+    for (seed, ratio), got in zip(((14, 0.4), (15, 0.08)), out):
+        src, tgt, corr = _problem(seed, 700, ratio)
+        rng = np.random.default_rng(seed)
+        r = ransac(src, tgt, corr, RansacConfig(max_iterations=6000), seed=rng)
+        assert np.array_equal(r.transform, got[0])
+        assert (r.iterations, r.n_checked, r.n_inliers, rng.integers(1 << 30)) == got[1:]
+    assert out[0][1] < 6000 and out[1][1] == 6000
