@@ -18,7 +18,7 @@ from pcrcg.geometry import random_rotation
 from pcrcg.registration.ransac import (RansacConfig, _Best, _EdgeCheck, _fit_and_check_distance,
                                       _fit_and_check_distance_cpu, _GridOverlapScore, _Hypotheses, _unique_rows,
                                       ransac)
-from pcrcg.registration.synthetic import correspondence_problem
+from pcrcg.testing.pairs import correspondence_problem
 
 
 def _problem(seed: int, n: int, inlier_ratio: float):
