@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -164,7 +166,8 @@ def test_squared_distances_on_request_choose_as_given_ones():
     rng = np.random.default_rng(11)
     src, _, _ = _problem(11, 1200, 0.5)
     tgt = src + rng.normal(scale=0.01, size=src.shape)
-    R = torch.as_tensor(np.stack([random_rotation(rng, 0.2 if k % 2 else 0.01) for k in range(16)]), dtype=torch.float32)
+    rotations = np.stack([random_rotation(rng, 0.2 if k % 2 else 0.01) for k in range(16)])
+    R = torch.as_tensor(rotations, dtype=torch.float32)
     t = torch.as_tensor(rng.normal(scale=0.01, size=(16, 3)), dtype=torch.float32)
     R[3], t[3] = torch.eye(3), torch.zeros(3)
     R[6], t[6] = R[3], t[3]  # a tie within the batch
@@ -211,7 +214,7 @@ def test_grid_of_a_box_with_far_off_target_points_is_exact():
     assert far.sum() >= 6 and (states[far] > 0).all() and (states == 2).mean() > 0.05  # near the far points: maybe
     cfg = RansacConfig(max_iterations=5000, max_validation=200, confidence=1.0)
     a = ransac(src, tgt, corr, cfg, seed=4)
-    b = ransac(src, tgt, corr, RansacConfig(prune=False, max_iterations=5000, max_validation=200, confidence=1.0), seed=4)
+    b = ransac(src, tgt, corr, dataclasses.replace(cfg, prune=False), seed=4)
     assert np.array_equal(a.transform, b.transform) and (a.iterations, a.n_checked) == (b.iterations, b.n_checked)
 
 
