@@ -19,7 +19,7 @@ from pcrcg.config import (
 from pcrcg.errors import ConfigError
 from test_run_support import make_conf
 
-EXPERIMENTS = ("main_results", "window_size", "views", "backbone_2d", "projection", "icp_init", "sift_dlt")
+EXPERIMENTS = tuple(group_options("experiment"))  # every experiment file (conf/experiment/*.yaml)
 
 
 @pytest.fixture(scope="module")
