@@ -242,3 +242,90 @@ def test_predator_forward_and_backward_equal_with_dense_and_sparse_kpconv(toy_ba
     assert gd.keys() == gs.keys() and any("encoder.0.conv" in k for k in gd)
     for k in gd:
         torch.testing.assert_close(gs[k], gd[k], rtol=1e-8, atol=1e-9 * max(1.0, float(gd[k].abs().max())))
+
+
+# --------------------------------------------------------------------------- circle loss
+
+
+def _circle_inputs(seed: int, n: int, m: int, dtype=torch.float64):
+    """Coordinates whose radius masks give a few positives per row (some rows none, one row all) and
+    descriptor distances in [0, 2]."""
+    gen = torch.Generator().manual_seed(seed)
+    a = torch.rand(n, 3, generator=gen, dtype=dtype)
+    b = torch.cat([a[: min(n, m)] + 0.01 * torch.randn(min(n, m), 3, generator=gen, dtype=dtype),
+                   torch.rand(max(0, m - n), 3, generator=gen, dtype=dtype)])
+    coords = torch.cdist(a, b)
+    coords[0] = 0.01  # a row of positives only (its positive logits have no zeros)
+    desc_a = torch.nn.functional.normalize(torch.randn(n, 8, generator=gen, dtype=dtype), dim=1)
+    desc_b = torch.nn.functional.normalize(torch.randn(m, 8, generator=gen, dtype=dtype), dim=1)
+    desc_b[: min(n, m)] = torch.nn.functional.normalize(desc_b[: min(n, m)] + 2 * desc_a[: min(n, m)], dim=1)
+    fd = torch.sqrt(torch.clamp(2.0 - 2.0 * desc_a @ desc_b.t(), min=1e-12))
+    return coords, fd
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+@pytest.mark.parametrize("shape", [(60, 45), (45, 60), (3, 40)])
+def test_circle_loss_equals_reference_float64(shape, scaled):
+    from pcrcg.models.losses import masked_circle_loss, masked_circle_loss_reference
+
+    coords, fd = _circle_inputs(0, *shape)
+    pos, neg = coords < 0.08, coords > 0.2
+    assert pos.any() and neg.any()
+    scales = torch.rand(shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64) if scaled else None
+    res = []
+    for fn in (masked_circle_loss_reference, masked_circle_loss):
+        f = fd.clone().requires_grad_(True)
+        loss = fn(pos, neg, f, 0.1, 1.4, 0.1, 1.4, 16.0, scales)
+        loss.backward()
+        res.append((loss.detach(), f.grad))
+    (l1, g1), (l2, g2) = res
+    assert float(l1) > 0.1 and g1.abs().max() > 1e-4
+    torch.testing.assert_close(l2, l1, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(g2, g1, rtol=1e-10, atol=1e-12)
+    with implementation("dense"):  # the previous code, reachable for the benchmark
+        torch.testing.assert_close(masked_circle_loss(pos, neg, fd, pos_scales=scales),
+                                   masked_circle_loss_reference(pos, neg, fd, pos_scales=scales), rtol=0, atol=0)
+
+
+def test_circle_loss_float32_and_degenerate_masks():
+    from pcrcg.models.losses import masked_circle_loss, masked_circle_loss_reference
+
+    coords, fd = _circle_inputs(1, 200, 180, torch.float32)
+    for pos, neg in ((coords < 0.06, coords > 0.15),  # the usual case
+                     (coords < 0.06, torch.zeros_like(coords, dtype=torch.bool)),  # no negatives: 0
+                     (torch.zeros_like(coords, dtype=torch.bool), coords > 0.15),  # no positives: 0
+                     (coords < 0.06, coords > 10.0)):
+        res = []
+        for fn in (masked_circle_loss_reference, masked_circle_loss):
+            f = fd.clone().requires_grad_(True)
+            loss = fn(pos, neg, f)
+            loss.backward()
+            res.append((loss.detach(), f.grad))
+        (l1, g1), (l2, g2) = res
+        torch.testing.assert_close(l2, l1, rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(g2, g1, rtol=1e-5, atol=1e-6 * max(1.0, float(g1.abs().max())))
+
+
+def test_predator_loss_stats_equal_with_the_previous_code(toy_batch):
+    """PredatorLoss (circle loss with its shared positives mask, hit rate, overlap, matchability) gives
+    the reference's statistics and descriptor gradients."""
+    from pcrcg.models.losses import LossConfig, PredatorLoss
+
+    crit = PredatorLoss(LossConfig(max_points=64), 0.12)
+    pts = toy_batch.pyramid.points[0].double()
+    gen = torch.Generator().manual_seed(0)
+    desc0 = torch.nn.functional.normalize(torch.randn(len(pts), 8, generator=gen, dtype=torch.float64), dim=1)
+    logits = torch.randn(len(pts), generator=gen, dtype=torch.float64)
+    res = []
+    for name in ("dense", "auto"):
+        desc = desc0.clone().requires_grad_(True)
+        with implementation(name):
+            stats = crit(desc, logits, logits, pts, toy_batch.n_src, toy_batch.transform.double(), toy_batch.corr,
+                         generator=torch.Generator().manual_seed(5))
+        stats["loss"].backward()
+        res.append(({k: v.detach() for k, v in stats.items()}, desc.grad))
+    (s1, g1), (s2, g2) = res
+    assert s1.keys() == s2.keys() and float(s1["circle_loss"]) > 0
+    for k in s1:
+        torch.testing.assert_close(s2[k], s1[k], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(g2, g1, rtol=1e-10, atol=1e-12)
