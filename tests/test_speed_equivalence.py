@@ -329,3 +329,80 @@ def test_predator_loss_stats_equal_with_the_previous_code(toy_batch):
     for k in s1:
         torch.testing.assert_close(s2[k], s1[k], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(g2, g1, rtol=1e-10, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- overlap attention
+
+
+def test_edge_linear_equals_linear_of_edge_features():
+    from pcrcg.models.predator import edge_features, edge_linear, knn_indices
+
+    gen = torch.Generator().manual_seed(0)
+    coords = torch.rand(70, 3, generator=gen, dtype=torch.float64)
+    x = torch.randn(70, 6, generator=gen, dtype=torch.float64)
+    idx = knn_indices(coords, 5)
+    lin = torch.nn.Linear(12, 9, bias=False).double()
+    res = []
+    for fast in (False, True):
+        xx = x.clone().requires_grad_(True)
+        lin.zero_grad()
+        y = edge_linear(lin, xx, idx) if fast else lin(edge_features(xx, idx))
+        (y * torch.linspace(-1, 1, y.numel(), dtype=torch.float64).view_as(y)).sum().backward()
+        res.append((y.detach(), xx.grad, lin.weight.grad.clone()))
+    for a, b in zip(*res):
+        torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12)
+
+
+def test_overlap_attention_equals_previous_code_float64():
+    """The bottleneck's attention (self layers with the shared k-NN graphs and per-point edge products,
+    cross layers) against the previous code, outputs and gradients of inputs and parameters."""
+    from pcrcg.models.predator import OverlapAttention
+
+    torch.manual_seed(0)
+    att = OverlapAttention(16, 2, 6, ("self", "cross", "self")).double()
+    gen = torch.Generator().manual_seed(1)
+    xyz = torch.rand(90, 3, generator=gen, dtype=torch.float64)
+    x0 = torch.randn(90, 16, generator=gen, dtype=torch.float64)
+    res = []
+    for name in ("dense", "auto"):
+        att.zero_grad()
+        x = x0.clone().requires_grad_(True)
+        with implementation(name):
+            s, t = att(xyz[:50], xyz[50:], x[:50], x[50:])
+            (s.square().sum() + (t * torch.linspace(-1, 1, t.numel(), dtype=torch.float64).view_as(t)).sum()).backward()
+        res.append((torch.cat([s, t]).detach(), x.grad, {k: p.grad.clone() for k, p in att.named_parameters()}))
+    (o1, g1, p1), (o2, g2, p2) = res
+    torch.testing.assert_close(o2, o1, rtol=1e-10, atol=1e-11)
+    torch.testing.assert_close(g2, g1, rtol=1e-9, atol=1e-10 * float(g1.abs().max()))
+    for k in p1:
+        torch.testing.assert_close(p2[k], p1[k], rtol=1e-9, atol=1e-10 * max(1.0, float(p1[k].abs().max())))
+
+
+@pytest.mark.parametrize("dims", [(0,), (0, 1)])
+def test_channel_normalisation_closed_form_backward_equals_autograd_of_the_formula(dims):
+    """The default normalisation's values are the two-pass formula bit for bit (float32), with and without
+    gradients; its closed-form backward equals autograd's through the formula to float rounding."""
+    gen = torch.Generator().manual_seed(4)
+    shape = (300, 7, 5) if dims == (0, 1) else (500, 5)
+
+    def formula(x):
+        n = x.shape[0] * (x.shape[1] if dims == (0, 1) else 1)
+        dev = x - x.sum(dim=dims, keepdim=True) / n
+        var = (dev * dev).sum(dim=dims, keepdim=True) / n
+        return dev * torch.rsqrt(var + 1e-5)
+
+    for dtype in (torch.float32, torch.float64):
+        x = torch.randn(shape, dtype=dtype, generator=gen) * 3 - 1
+        g = torch.randn(shape, dtype=dtype, generator=gen)
+        res = []
+        for fn in (formula, lambda t: normalize_channels(t, dims, 1e-5)):
+            xx = x.clone().requires_grad_(True)
+            y = fn(xx)
+            (y * g).sum().backward()
+            res.append((y.detach(), xx.grad))
+        (y1, g1), (y2, g2) = res
+        assert torch.equal(y2, y1)
+        with torch.no_grad():
+            assert torch.equal(normalize_channels(x, dims, 1e-5), y1)
+        tol = 1e-12 if dtype == torch.float64 else 1e-5
+        torch.testing.assert_close(g2, g1, rtol=tol, atol=tol)

@@ -35,6 +35,7 @@ from pcrcg.models.kpconv.blocks import (
     max_over_neighbours,
     normalize_channels,
 )
+from pcrcg.models.kpconv.conv import get_implementation
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 
 
@@ -110,6 +111,19 @@ def edge_features(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return torch.cat([xi, x[idx] - xi], dim=-1)
 
 
+def edge_linear(lin: nn.Linear, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``lin(edge_features(x, idx))`` for a bias-free ``lin`` (2C -> O), without the (N, k, 2C) edge tensor:
+    with W = [Wa | Wb], W [x_i, x_j - x_i] = (Wa - Wb) x_i + Wb x_j = (A - B)_i + B_j, A = x Wa^T and
+    B = x Wb^T per point (N x C x O multiply-adds instead of N x k x 2C x O), then one gather of B.
+    The same sums in another order: equal to float rounding (``tests/test_speed_equivalence.py``)."""
+    c = x.shape[1]
+    w = lin.weight
+    a = F.linear(x, w[:, :c])
+    b = F.linear(x, w[:, c:])
+    n, k = idx.shape
+    return (a - b).unsqueeze(1) + b.index_select(0, idx.reshape(-1)).view(n, k, -1)
+
+
 def _edge_norm(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
     """Per-channel normalisation over all (point, neighbour) entries: (N, k, C) -> (N, k, C)."""
     return normalize_channels(x, (0, 1), eps)
@@ -126,11 +140,20 @@ class SelfAttentionGraph(nn.Module):
         self.conv3 = nn.Linear(4 * dim, dim, bias=False)
         self.norm3 = PointNorm(dim)
 
-    def forward(self, coords: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """coords (N, 3), x (N, C) -> (N, C)."""
-        idx = knn_indices(coords, self.k)
-        x1 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv1(edge_features(x, idx))), 0.2))
-        x2 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv2(edge_features(x1, idx))), 0.2))
+    def forward(self, coords: torch.Tensor, x: torch.Tensor, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """coords (N, 3), x (N, C) -> (N, C); ``idx``: ``knn_indices(coords, self.k)`` when the caller has it.
+
+        The KPConv implementation ``dense`` (the previous code, :func:`pcrcg.models.kpconv.implementation`)
+        builds the (N, k, 2C) edge features and applies the convolutions to them; otherwise
+        :func:`edge_linear` computes the same products per point (equal to float rounding)."""
+        if idx is None:
+            idx = knn_indices(coords, self.k)
+        if get_implementation() == "dense":
+            x1 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv1(edge_features(x, idx))), 0.2))
+            x2 = max_over_neighbours(F.leaky_relu(_edge_norm(self.conv2(edge_features(x1, idx))), 0.2))
+        else:
+            x1 = max_over_neighbours(F.leaky_relu(_edge_norm(edge_linear(self.conv1, x, idx)), 0.2))
+            x2 = max_over_neighbours(F.leaky_relu(_edge_norm(edge_linear(self.conv2, x1, idx)), 0.2))
         return F.leaky_relu(self.norm3(self.conv3(torch.cat([x, x1, x2], dim=-1))), 0.2)
 
 
@@ -185,12 +208,17 @@ class OverlapAttention(nn.Module):
 
     def forward(self, src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src: torch.Tensor,
                 tgt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        knn: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # the self layers' graphs, by k
+        reuse = get_implementation() != "dense"  # the previous code built them in every layer
         for name, layer in zip(self.names, self.layers):
             if name == "cross":
                 src = src + layer(src, tgt)
                 tgt = tgt + layer(tgt, src)
             else:
-                src, tgt = layer(src_xyz, src), layer(tgt_xyz, tgt)
+                if layer.k not in knn or not reuse:
+                    knn[layer.k] = (knn_indices(src_xyz, layer.k), knn_indices(tgt_xyz, layer.k))
+                i_src, i_tgt = knn[layer.k]
+                src, tgt = layer(src_xyz, src, i_src), layer(tgt_xyz, tgt, i_tgt)
         return src, tgt
 
 
