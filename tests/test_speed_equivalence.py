@@ -406,3 +406,24 @@ def test_channel_normalisation_closed_form_backward_equals_autograd_of_the_formu
             assert torch.equal(normalize_channels(x, dims, 1e-5), y1)
         tol = 1e-12 if dtype == torch.float64 else 1e-5
         torch.testing.assert_close(g2, g1, rtol=tol, atol=tol)
+
+
+def test_matchability_labels_by_blocks_equal_the_full_score_matrix():
+    """The labels' arg-maxes over blocks of rows (and of the transposed products) are those of the full
+    (n, m) score matrix, on sizes spanning several blocks, with duplicated descriptors (ties: the first
+    maximum, as argmax)."""
+    from pcrcg.models.losses import _best_scores, matchability_labels
+
+    gen = torch.Generator().manual_seed(7)
+    a = torch.nn.functional.normalize(torch.randn(1300, 32, generator=gen), dim=1)
+    b = torch.nn.functional.normalize(torch.randn(1100, 32, generator=gen), dim=1)
+    b[700] = b[20]  # a tie in every row whose best is b[20]
+    a[1000] = a[3]
+    full = a @ b.t()
+    assert torch.equal(_best_scores(a, b), full.argmax(1)) and torch.equal(_best_scores(b, a), full.argmax(0))
+    xa, xb = torch.rand(1300, 3, generator=gen), torch.rand(1100, 3, generator=gen)
+    with implementation("dense"):
+        ref = matchability_labels(xa, xb, a, b, 0.3)
+    got = matchability_labels(xa, xb, a, b, 0.3)
+    assert 0 < float(ref[0].mean()) < 1
+    assert all(torch.equal(x, y) for x, y in zip(got, ref))

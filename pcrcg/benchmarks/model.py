@@ -1,7 +1,7 @@
 """Speed and memory of the 3D network stage (prints figures; asserts nothing).
 
 ``python -m pcrcg.benchmarks.model [profiles=[tiny,cpu]] [models=[predator,geotransformer]] [pairs=4]
-[reps=3] [device=cpu] [threads=1] [root=null] [color=none|rgb|deep] [breakdown=false]``
+[reps=3] [device=cpu] [threads=1] [root=null] [color=none|rgb|deep] [breakdown=false] [matchability=false]``
 
 Per profile and model (sizes from ``conf/profile/<p>.yaml`` + ``conf/model/<model>.yaml``), on the
 generated data set ``data/synthmatch-<p>`` when it exists (else a synthetic box-room pair sized for
@@ -13,7 +13,10 @@ the profile's voxel, said so in the output):
 * training, seconds per pair: forward + losses + backward + optimiser step (the profile's);
 * inference, seconds per pair: forward without gradients and the per-fragment outputs;
 * peak memory: the process's peak RSS (CPU) or ``torch.cuda.max_memory_allocated`` (GPU);
-* ``breakdown=true``: the training step by stage (torch.profiler over the model's labelled scopes).
+* ``breakdown=true``: the training step by stage (torch.profiler over the model's labelled scopes);
+* ``matchability=true``: the training step with Predator's matchability loss on (its gate open, as once
+  the validation recall passes ``loss.matchability_after_recall``: the later part of a run, and every
+  validation step), which adds the matchability labels (arg-maxes of an overlap x overlap score matrix).
 
 ``compare=true`` (the default) times the training step and inference twice, interleaved step by
 step in one process: ``old`` with the previous gathers (``pcrcg.models.kpconv`` implementation
@@ -133,7 +136,7 @@ def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
 
 def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
                   color: str = "none", breakdown: bool = False, model: str = "predator",
-                  compare: bool = True) -> dict[str, Any]:
+                  compare: bool = True, matchability: bool = False) -> dict[str, Any]:
     import torch
 
     from pcrcg.models.datamodule import AugmentConfig, PairCollate
@@ -171,6 +174,8 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     torch.manual_seed(0)
     model_cfg = {**m, "neighbor_limits": list(limits)}
     module = PCRCGModule(model_cfg, optim=t.get("optim"), lifting=lifting).to(device)
+    if matchability and hasattr(module, "matchability_gate"):
+        module.matchability_gate.fill_(1.0)
     n_params = sum(p.numel() for p in module.net.parameters())
     opt = module.configure_optimizers()["optimizer"]
     batches = [warm_col([s]).to(device) for s in samples]
@@ -219,6 +224,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         "train_s_per_pair": s_train, "infer_s_per_pair": s_infer, "optimizer": type(opt).__name__,
         "peak_mem_mb": peak, "peak_mem_kind": "cuda allocated" if device.startswith("cuda") else "process RSS",
         "torch_threads": torch.get_num_threads(), "stages_ms_per_step": stages, "old_vs_new": compared or None,
+        "matchability": bool(matchability),
     }
 
 
@@ -276,7 +282,7 @@ def _parse(argv: list[str]) -> dict[str, Any]:
 
     args = {"profiles": ["tiny", "cpu"], "models": ["predator", "geotransformer"], "pairs": 4, "reps": 3,
             "device": "cpu", "threads": 1, "root": None, "color": "none", "child": False, "breakdown": False,
-            "compare": True}
+            "compare": True, "matchability": False}
     for a in argv:
         k, _, v = a.partition("=")
         if k not in args:
@@ -298,7 +304,8 @@ def _print(row: dict[str, Any]) -> None:
           f"{row['params'] / 1e6:.2f} M params, in_dim {row['in_dim']}; "
           f"{row['level0_points_per_pair']:.0f} level-0 points per pair; limits {row['neighbor_limits']}")
     print(f"  data pipeline  {row['data_s_per_pair_cold']:.3f} s/pair cold, {row['data_s_per_pair_warm']:.3f} s/pair warm")
-    print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + {row['optimizer']})")
+    ml = ", matchability loss on" if row.get("matchability") else ""
+    print(f"  training       {row['train_s_per_pair']:.3f} s/pair (forward + loss + backward + {row['optimizer']}{ml})")
     print(f"  inference      {row['infer_s_per_pair']:.3f} s/pair")
     print(f"  peak memory    {row['peak_mem_mb']:.0f} MB ({row['peak_mem_kind']}), {row['torch_threads']} torch threads")
     cmp = row.get("old_vs_new")
@@ -323,14 +330,15 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     if args["child"]:
         row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
                             args["root"], str(args["color"]), bool(args["breakdown"]), str(args["models"][0]),
-                            bool(args["compare"]))
+                            bool(args["compare"]), bool(args["matchability"]))
         print("@@" + json.dumps(row))
         return [row]
     rows = []
     for p in args["profiles"]:
         for model in args["models"]:  # each in its own process: its own peak memory
             cmd = [sys.executable, "-m", "pcrcg.benchmarks.model", f"profiles={p}", f"models=[{model}]", "child=true"]
-            cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown", "compare")]
+            cmd += [f"{k}={args[k]}" for k in ("pairs", "reps", "device", "threads", "color", "breakdown", "compare",
+                                                   "matchability")]
             if args["root"]:
                 cmd.append(f"root={args['root']}")
             res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})

@@ -275,10 +275,25 @@ def matchability_labels(src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_desc: 
     if len(src_xyz) == 0 or len(tgt_xyz) == 0:
         z = src_xyz.new_zeros
         return z(len(src_xyz)), z(len(tgt_xyz))
-    scores = src_desc @ tgt_desc.t()
-    d1 = torch.linalg.vector_norm(src_xyz - tgt_xyz[scores.argmax(1)], dim=1)
-    d2 = torch.linalg.vector_norm(tgt_xyz - src_xyz[scores.argmax(0)], dim=1)
+    from pcrcg.models.kpconv.conv import get_implementation
+
+    if get_implementation() == "dense" or src_desc.device.type != "cpu":  # the previous code
+        scores = src_desc @ tgt_desc.t()
+        best_t, best_s = scores.argmax(1), scores.argmax(0)
+    else:
+        best_t, best_s = _best_scores(src_desc, tgt_desc), _best_scores(tgt_desc, src_desc)
+    d1 = torch.linalg.vector_norm(src_xyz - tgt_xyz[best_t], dim=1)
+    d2 = torch.linalg.vector_norm(tgt_xyz - src_xyz[best_s], dim=1)
     return (d1 < radius).float(), (d2 < radius).float()
+
+
+def _best_scores(a: torch.Tensor, b: torch.Tensor, chunk: int = 512) -> torch.Tensor:
+    """``(a @ b.t()).argmax(1)`` by blocks of ``chunk`` rows: the (n, m) scores never exist at once (at
+    5.8k x 5.7k overlap points: 130 MB), and ``argmax(0)`` of the matrix, a slow strided reduction on the
+    CPU (~330 ms there), becomes this row-wise arg-max of ``b @ a.t()`` (whose entries are the same
+    products, bit for bit on the CPU BLAS: ``tests/test_speed_equivalence.py``)."""
+    bt = b.t()
+    return torch.cat([(a[s:s + chunk] @ bt).argmax(1) for s in range(0, a.shape[0], chunk)])
 
 
 @dataclass
