@@ -19,9 +19,13 @@ the profile's voxel, said so in the output):
   validation step), which adds the matchability labels (arg-maxes of an overlap x overlap score matrix).
 
 ``compare=true`` (the default) times the training step and inference twice, interleaved step by
-step in one process: ``old`` with the previous gathers (``pcrcg.models.kpconv`` implementation
-``dense``: padded neighbour gathers, the reference max-pool backward, ``torch.var_mean`` norms) and
-``new`` with the default (``auto``: the sparse aggregation on the CPU, two-pass norms), and prints both side by side with the speed-up and
+step in one process: ``old`` with the previous code (``pcrcg.models.kpconv`` implementation
+``dense``: padded neighbour gathers, the reference max-pool backward, ``torch.var_mean`` norms, the
+attention's (N, k, 2C) edge features and a k-NN graph per layer, the circle loss in plain autograd
+operations, the matchability labels' full score matrix) and ``new`` with the default (``auto``: the
+sparse aggregation on the CPU, two-pass norms with a closed-form backward, per-point edge products and
+shared k-NN graphs, the fused circle-loss log-sum-exps, the labels' arg-maxes by blocks), and prints
+both side by side with the speed-up and
 the largest difference of the two inferences' descriptors (float rounding only). Every step starts
 from an empty per-batch KPConv cache, as in a run, where every batch is a new pair. Wall time
 (median) and the process's CPU time (median, steadier on a shared machine) are both given.

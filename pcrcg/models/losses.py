@@ -142,7 +142,8 @@ class _CircleLogSumExps(torch.autograd.Function):
     The gradient goes to ``feats_dist`` only (the weights are constants, as the reference's detach)."""
 
     @staticmethod
-    def forward(ctx, fd, pos, neg, pos_margin, neg_margin, pos_optimal, neg_optimal, log_scale, pos_scales):  # type: ignore[override]
+    def forward(ctx, fd, pos, neg, pos_margin, neg_margin, pos_optimal, neg_optimal,  # type: ignore[override]
+                log_scale, pos_scales):
         n, m = fd.shape
         # negatives (dense): w = max(0, neg_optimal - d) on the mask, 0 elsewhere; logit s * (margin - d) * w
         w_neg = torch.clamp(neg_optimal - fd, min=0).masked_fill_(~neg, 0.0)

@@ -21,8 +21,12 @@ elsewhere (GPUs, half precision, positions that require a gradient).
 ``dense`` is also the switch to the previous code of the other fast paths of the KPConv blocks,
 so that one setting reproduces the old network step for comparisons
 (``python -m pcrcg.benchmarks.model``): the max-pool's autograd backward
-(:func:`pcrcg.models.kpconv.blocks.max_pool_reference`) and ``torch.var_mean`` in the point and
-edge normalisations (:func:`pcrcg.models.kpconv.blocks.normalize_channels`).
+(:func:`pcrcg.models.kpconv.blocks.max_pool_reference`), ``torch.var_mean`` in the point and
+edge normalisations (:func:`pcrcg.models.kpconv.blocks.normalize_channels`; otherwise two passes of
+sums with a closed-form backward), Predator's attention (:class:`pcrcg.models.predator.SelfAttentionGraph`:
+the (N, k, 2C) edge features and a k-NN graph per layer, instead of per-point products and shared graphs)
+and its losses (:func:`pcrcg.models.losses.masked_circle_loss_reference` instead of the fused
+log-sum-exps; the full score matrix of :func:`pcrcg.models.losses.matchability_labels`).
 """
 
 from __future__ import annotations
