@@ -112,6 +112,13 @@ def masked_circle_loss(pos: torch.Tensor, neg: torch.Tensor, feats_dist: torch.T
         None if pos_scales is None else pos_scales.detach())
     loss_row = F.softplus(lse_pos_row + lse_neg_row) / log_scale
     loss_col = F.softplus(lse_pos_col + lse_neg_col) / log_scale
+    return _mean_of_sides(loss_row, row_sel, loss_col, col_sel, feats_dist)
+
+
+def _mean_of_sides(loss_row: torch.Tensor, row_sel: torch.Tensor, loss_col: torch.Tensor, col_sel: torch.Tensor,
+                   feats_dist: torch.Tensor) -> torch.Tensor:
+    """Mean of the selected rows' and the selected columns' losses, averaged (Predator); with one side
+    empty the other; with both empty a zero that keeps the graph of ``feats_dist``."""
     parts = []
     if row_sel.any():
         parts.append(loss_row[row_sel].mean())
@@ -212,15 +219,7 @@ def masked_circle_loss_reference(pos: torch.Tensor, neg: torch.Tensor, feats_dis
     neg_term = log_scale * (neg_margin - feats_dist) * w_neg
     loss_row = F.softplus(torch.logsumexp(pos_term, -1) + torch.logsumexp(neg_term, -1)) / log_scale
     loss_col = F.softplus(torch.logsumexp(pos_term, -2) + torch.logsumexp(neg_term, -2)) / log_scale
-    parts = []
-    if row_sel.any():
-        parts.append(loss_row[row_sel].mean())
-    if col_sel.any():
-        parts.append(loss_col[col_sel].mean())
-    if not parts:
-        return feats_dist.sum() * 0.0
-    # Predator averages the row and column means; with one side empty we keep the other
-    return torch.stack(parts).mean()
+    return _mean_of_sides(loss_row, row_sel, loss_col, col_sel, feats_dist)
 
 
 def weighted_bce(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
