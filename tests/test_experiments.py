@@ -42,6 +42,8 @@ def test_the_real_tables_sweeps(capsys):
     assert tuple(capsys.readouterr().out.split()) == TABLE_ORDER
     for name in TABLE_ORDER:  # every table of the order has its experiment file
         assert experiment_jobs(name)
+    # and every experiment file is in the order (all_tables.sh sweeps every table)
+    assert sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml")) == sorted(TABLE_ORDER)
 
 
 def test_an_unknown_experiment_is_a_config_error_naming_it():
