@@ -72,7 +72,7 @@ _KEY_FIELDS = {
     "lightglue": ("method", "ransac_threshold", "max_keypoints", "min_matches", "image_size", "seed", "nms_window",
                   "filter_threshold"),
 }
-_KEY_FIELDS["orb"] = _KEY_FIELDS["sift"]
+_KEY_FIELDS["orb"] = tuple(k for k in _KEY_FIELDS["sift"] if k != "contrast_threshold")  # a SIFT-only setting
 
 
 @dataclass

@@ -248,17 +248,16 @@ def fpfh_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig, ev
 
 
 def matcher_configs(profile: str) -> dict[str, Any]:
-    """``conf/matcher2d/sift.yaml`` with ``image_size`` from ``conf/profile/<profile>.yaml``
-    (``lifting.image_size``, the projection's grid) and the same at the images' native size."""
+    """``matcher2d=sift`` as ``python -m pcrcg.run matcher2d=sift profile=<profile>`` composes it (its
+    ``image_size`` is the profile's ``lifting.image_size``, the projection's grid) and the same at the
+    images' native size."""
     from omegaconf import OmegaConf
 
-    from pcrcg.config import CONF_DIR, profile_node
+    from pcrcg.config import load_run_config
     from pcrcg.vision.matching import MatcherConfig
 
-    conf = Path(CONF_DIR)
-    node = OmegaConf.create({"profile": profile_node(profile, conf),
-                             "matcher2d": OmegaConf.load(conf / "matcher2d" / "sift.yaml")})
-    m = OmegaConf.to_container(node.matcher2d, resolve=True)
+    cfg = load_run_config([f"profile={profile}", "matcher2d=sift"], validate=False)
+    m = OmegaConf.to_container(cfg.matcher2d, resolve=True)
     grid = MatcherConfig.from_cfg(m)
     native = MatcherConfig.from_cfg({**m, "image_size": None})
     return {"grid": grid, "native": native}
