@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader
 from pcrcg.data.dataset import PairDataset, PairSample, View
 from pcrcg.errors import ConfigError
 from pcrcg.geometry import invert, make_transform, random_rotation, transform_points
-from pcrcg.models.fields import NodeSettings
+from pcrcg.fields import NodeSettings
 from pcrcg.models.kpconv.ops import radius_pairs
 from pcrcg.models.kpconv.pyramid import (
     FragmentPyramid,

@@ -19,7 +19,7 @@ from typing import Any, Mapping
 import torch
 from torch import nn
 
-from pcrcg.models.fields import known_fields
+from pcrcg.fields import known_fields
 from pcrcg.models.kpconv.blocks import ResnetBottleneckBlock, SimpleBlock
 from pcrcg.models.kpconv.pyramid import TensorPyramid
 

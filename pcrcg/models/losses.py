@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from pcrcg.models.fields import NodeSettings
+from pcrcg.fields import NodeSettings
 
 
 @dataclass

@@ -34,7 +34,7 @@ from torch.profiler import record_function  # stage labels (pcrcg.benchmarks.mod
 from pcrcg.config import OPTIMIZERS
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
-from pcrcg.models.fields import known_fields
+from pcrcg.fields import known_fields
 from pcrcg.models.losses import CoarseInputs, LossConfig, PredatorLoss
 from pcrcg.models.predator import build_predator
 from pcrcg.registration.feature_registration import FragmentOutput

@@ -46,7 +46,7 @@ from omegaconf import DictConfig, OmegaConf
 from pcrcg.data.layout import evenly
 from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError, one_line
-from pcrcg.models.fields import lookup
+from pcrcg.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import PairOutput, PCRCGModule, build_lifter_from
 from pcrcg.registration.feature_registration import FragmentOutput

@@ -36,7 +36,7 @@ from pcrcg.config import OPTIMIZERS
 from pcrcg.data.layout import Layout
 from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, DataError
-from pcrcg.models.fields import lookup
+from pcrcg.fields import lookup
 from pcrcg.pretrain2d.frames import FrameCache, FrameSequence, list_sequences, load_sequence
 from pcrcg.vision.encoders import ARCHS, INITS, ResUNet, build_encoder, save_pri3d_checkpoint
 from pcrcg.vision.pretrain import (

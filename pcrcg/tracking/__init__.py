@@ -1,4 +1,4 @@
-"""MLflow tracking helpers: store URI, config hash, git sha, the run tracker, the multirun callback.
+"""MLflow tracking helpers: store URI, config hash, git sha, the run tracker (the multirun callback: :mod:`pcrcg.sweep`).
 
 ``mlflow`` itself is imported lazily (it costs about 2 s), so importing this package is cheap.
 """

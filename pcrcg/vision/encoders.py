@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pcrcg.errors import ConfigError, DataError
-from pcrcg.models.fields import option
+from pcrcg.fields import option
 
 ARCHS = {"resnet18": ("basic", (2, 2, 2, 2)), "resnet34": ("basic", (3, 4, 6, 3)), "resnet50": ("bottleneck", (3, 4, 6, 3))}
 INITS = ("scratch", "imagenet", "pri3d")

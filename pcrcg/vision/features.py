@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.fields import option
+from pcrcg.fields import option
 from pcrcg.vision.encoders import build_encoder
 from pcrcg.vision.keypoints import sift_projection
 from pcrcg.vision import learned  # called as learned.dense_disk_maps: a test may replace it there

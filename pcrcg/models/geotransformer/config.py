@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 from pcrcg.errors import ConfigError
-from pcrcg.models.fields import NodeSettings
+from pcrcg.fields import NodeSettings
 from pcrcg.models.encoder import KPConvSettings
 
 
