@@ -61,10 +61,18 @@ class Row:
     where: Mapping[str, Any] = field(default_factory=dict)
     experiment: str | None = None
     reason: str | None = None  # why this row has no runs by design (e.g. a published baseline)
+    job: str | None = None  # overrides beyond the experiment's sweep that make this row's runs (a job of its own)
 
     @property
     def text(self) -> str:
         return self.label or (f"{self.method} {self.variant}".strip())
+
+    def command(self, experiment: str, profile: str | None = None) -> str:
+        """The command that makes this row's runs when the experiment's sweep does not (``job``); experiment
+        ``default`` is the main job, ``python -m pcrcg.run`` without an experiment file."""
+        parts = ["python -m pcrcg.run", "" if experiment == "default" else f"+experiment={experiment}",
+                 self.job or "", f"profile={profile}" if profile else ""]
+        return " ".join(p for p in parts if p)
 
 
 @dataclass(frozen=True)
@@ -200,7 +208,8 @@ def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
     for name, s in raw.items():
         rows = tuple(
             Row(method=str(r["method"]), variant=str(r.get("variant") or ""), label=str(r.get("label") or ""),
-                where=dict(r.get("where") or {}), experiment=r.get("experiment"), reason=r.get("reason"))
+                where=dict(r.get("where") or {}), experiment=r.get("experiment"), reason=r.get("reason"),
+                job=r.get("job"))
             for r in s["rows"]
         )
         if not rows:

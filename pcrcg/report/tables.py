@@ -170,7 +170,8 @@ def _where_text(where: Mapping[str, Any]) -> str:
     return ", ".join(f"{k}={_text(v)}" for k, v in where.items()) or "any config"
 
 
-def _missing_reason(candidates: pd.DataFrame, experiment: str, where: Mapping[str, Any], profile: str | None) -> str:
+def _missing_reason(candidates: pd.DataFrame, experiment: str, where: Mapping[str, Any], profile: str | None,
+                    row: Row | None = None) -> str:
     if not candidates.empty:
         last = candidates.sort_values("start_time").iloc[-1]
         status = str(last["status"])
@@ -182,7 +183,8 @@ def _missing_reason(candidates: pd.DataFrame, experiment: str, where: Mapping[st
             return f"still running or crashed (run {str(last['run_id'])[:8]})"
         return f"{status.lower()} (run {str(last['run_id'])[:8]})"
     prof = f" at profile {profile}" if profile else ""
-    return f"no run of experiment '{experiment}' with {_where_text(where)}{prof}"
+    how = f" (not in the sweep: {row.command(experiment, profile)})" if row is not None and row.job else ""
+    return f"no run of experiment '{experiment}' with {_where_text(where)}{prof}{how}"
 
 
 def _no_value_reason(done: pd.DataFrame, col: Column) -> str:
@@ -222,7 +224,7 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             cand = row_runs[match(row_runs, col.where)] if col.where else row_runs
             done = _newest_per_seed(cand[cand["status"] == "FINISHED"], identity)
             if done.empty:
-                cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof)
+                cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof, row)
                 continue
             vals, refs, keys = [], [], []
             for _, rec in done.iterrows():
