@@ -124,18 +124,19 @@ def _samples(root: Path | None, voxel: float, n: int, n_views: int) -> tuple[lis
             f"synthetic box-room pairs ({root} not found)")
 
 
-def _lifting(color: str, profile: dict[str, Any]) -> dict | None:
-    """Implicit projection of 2 views (explicit adds the 2D matcher, timed by ``benchmarks.vision``);
-    image sizes from the profile's ``encoder2d`` / ``lifting`` sections."""
+def _lifting(color: str, profile: str, model: str = "predator") -> dict | None:
+    """The projection module's nodes (:func:`pcrcg.models.train.lifting_section`) as ``python -m pcrcg.run
+    features=<color> projection=implicit profile=<profile> model=<model>`` composes them: the run's views and
+    the profile's 2D network and image sizes (explicit adds the 2D matcher, timed by ``benchmarks.vision``)."""
     if color == "none":
         return None
-    feats = {"name": color, "dim": 3 if color == "rgb" else 32}
-    grid = (profile.get("lifting") or {}).get("image_size")
-    out = {"projection": {"name": "implicit", "views": 2, "image_size": grid}, "features": feats}
-    if color == "deep":
-        out["encoder2d"] = {"name": "scratch", "arch": "resnet18", "out_dim": 32, "weights": None,
-                            "image_size": (profile.get("encoder2d") or {}).get("image_size")}
-    return out
+    from pcrcg.config import load_run_config
+    from pcrcg.models.train import lifting_section
+    from pcrcg.tracking.hashing import to_plain
+
+    cfg = load_run_config([f"profile={profile}", f"model={model}", f"features={color}", "projection=implicit"],
+                          validate=False)
+    return lifting_section(to_plain(cfg))
 
 
 def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
@@ -150,8 +151,8 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
     cfg = profile_config(profile, model)
     m, t = cfg["model"], cfg["trainer"]
     data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
-    lifting = _lifting(color, cfg["profile"])
-    samples, source = _samples(data_root, m["voxel_size"], pairs, 2 if lifting else 0)
+    lifting = _lifting(color, profile, model)
+    samples, source = _samples(data_root, m["voxel_size"], pairs, int(lifting["projection"]["views"]) if lifting else 0)
     spec0 = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], (), m["max_points"])
     clouds = [c for s in samples for c in (s.src_points, s.tgt_points)]
     limits = calibrate_limits(clouds, spec0, m["neighbor_keep_ratio"])
