@@ -241,3 +241,21 @@ def test_influence_cache_is_shared_within_a_level_and_exact():
     assert len(cache) == 2
     torch.testing.assert_close(ya, a(pts, pts, nb, x))  # identical to the uncached path
     assert yb.shape == (80, 6)
+
+
+def test_a_fragments_pyramid_does_not_depend_on_where_its_data_set_lies():
+    """The draw that caps level 0 is seeded by the fragment, not by the data root's path: the same data in
+    another folder (a copy, another checkout) gives the same pyramids; another fragment gets another draw."""
+    from pcrcg.models.datamodule import PairCollate
+    from pcrcg.models.kpconv import PyramidSpec
+    from pcrcg.testing.pairs import toy_pair
+
+    s = toy_pair(0, density=80.0)
+    spec = PyramidSpec(0.1, 3, 2.5, (), max_points=len(s.src_points) // 2)  # a cap: a random half is kept
+    here = PairCollate(spec, 0.15, root="/data/synthmatch-cpu").pyramid("scene-a", 3, s.src_points)
+    there = PairCollate(spec, 0.15, root="/elsewhere/copy/synthmatch-cpu").pyramid("scene-a", 3, s.src_points)
+    other = PairCollate(spec, 0.15, root="/data/synthmatch-cpu").pyramid("scene-a", 4, s.src_points)
+    assert len(here.points[0]) == spec.max_points
+    for a, b in zip(here.points + here.neighbors, there.points + there.neighbors):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(here.points[0], other.points[0])

@@ -119,10 +119,15 @@ class PairCollate:
         self.match_fn = match_fn  # 2D matching for explicit projection, done here on the CPU (workers)
 
     def pyramid(self, scene: str, frag: int, points: np.ndarray) -> FragmentPyramid:
-        key = (self.root, scene, int(frag), self.spec.key())
+        """The fragment's pyramid, cached under (data root, scene, fragment, sizes). The draw that caps level 0
+        at ``spec.max_points`` is seeded by (scene, fragment, sizes) alone: the same data set gives the same
+        pyramids wherever its folder lies (the root's path once seeded it, so a copy or a checkout
+        elsewhere trained on other points)."""
+        rng = fragment_rng((scene, int(frag), self.spec.key()))
         if frag < 0 or not scene:  # anonymous cloud: no caching
-            return build_pyramid(points, self.spec, fragment_rng(key), self.workers)
-        return self.cache.get(key, lambda: build_pyramid(points, self.spec, fragment_rng(key), self.workers))
+            return build_pyramid(points, self.spec, rng, self.workers)
+        return self.cache.get((self.root, scene, int(frag), self.spec.key()),
+                              lambda: build_pyramid(points, self.spec, rng, self.workers))
 
     def __call__(self, samples: Sequence[PairSample]) -> PairBatch:
         if len(samples) != 1:
