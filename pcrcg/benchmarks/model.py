@@ -139,20 +139,12 @@ def _lifting(color: str, profile: str, model: str = "predator") -> dict | None:
     return lifting_section(to_plain(cfg))
 
 
-def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
-                  color: str = "none", breakdown: bool = False, model: str = "predator",
-                  compare: bool = True, matchability: bool = False) -> dict[str, Any]:
-    import torch
-
+def _collate(samples: list, m: dict[str, Any], t: dict[str, Any]):
+    """The training collate of the samples' pyramids (neighbour limits calibrated on them, as the data
+    module does) and its time per pair without and with the pyramid cache: (collate, limits, cold, warm)."""
     from pcrcg.models.datamodule import AugmentConfig, PairCollate
     from pcrcg.models.kpconv import PyramidCache, PyramidSpec, calibrate_limits
-    from pcrcg.models.module import PCRCGModule
 
-    cfg = profile_config(profile, model)
-    m, t = cfg["model"], cfg["trainer"]
-    data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
-    lifting = _lifting(color, profile, model)
-    samples, source = _samples(data_root, m["voxel_size"], pairs, int(lifting["projection"]["views"]) if lifting else 0)
     spec0 = PyramidSpec(m["voxel_size"], m["num_layers"], m["conv_radius"], (), m["max_points"])
     clouds = [c for s in samples for c in (s.src_points, s.tgt_points)]
     limits = calibrate_limits(clouds, spec0, m["neighbor_keep_ratio"])
@@ -166,8 +158,7 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         t0 = time.perf_counter()
         col([s])
         cold.append(time.perf_counter() - t0)
-    cache = PyramidCache(64)
-    warm_col = PairCollate(spec, r_ov, aug, cache)
+    warm_col = PairCollate(spec, r_ov, aug, PyramidCache(64))
     for s in samples:
         warm_col([s])
     warm = []
@@ -175,18 +166,11 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         t0 = time.perf_counter()
         warm_col([s])
         warm.append(time.perf_counter() - t0)
+    return warm_col, limits, cold, warm
 
-    torch.manual_seed(0)
-    model_cfg = {**m, "neighbor_limits": list(limits)}
-    module = PCRCGModule(model_cfg, optim=t.get("optim"), lifting=lifting).to(device)
-    if matchability and hasattr(module, "matchability_gate"):
-        module.matchability_gate.fill_(1.0)
-    n_params = sum(p.numel() for p in module.net.parameters())
-    opt = module.configure_optimizers()["optimizer"]
-    batches = [warm_col([s]).to(device) for s in samples]
-    sync = (lambda: torch.cuda.synchronize()) if device.startswith("cuda") else (lambda: None)
-    if device.startswith("cuda"):
-        torch.cuda.reset_peak_memory_stats()
+
+def _step_functions(module, opt, sync):
+    """One training step (forward, loss, backward, optimiser) and one inference of a batch."""
 
     def train_on(b):
         b.pyramid.cache.clear()  # a run's every batch is a new pair: nothing of the last step is reused
@@ -202,6 +186,13 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         module.predict_pair(b)
         sync()
 
+    return train_on, infer_on
+
+
+def _time_steps(module, opt, batches, sync, reps: int, compare: bool, breakdown: bool):
+    """Seconds per training step and per inference (old and new side by side when ``compare``), the
+    stage breakdown when asked: (s_train, s_infer, stages, compared)."""
+    train_on, infer_on = _step_functions(module, opt, sync)
     it = iter(range(10**9))
     compared: dict[str, Any] = {}
     module.train()
@@ -218,12 +209,43 @@ def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cp
         compared["max_output_diff"] = _max_output_diff(module, batches)
     else:
         s_infer = _time(lambda: infer_on(batches[next(it) % len(batches)]), reps * len(batches))
+    return s_train, s_infer, stages, compared
+
+
+def bench_profile(profile: str, pairs: int = 4, reps: int = 3, device: str = "cpu", root: str | None = None,
+                  color: str = "none", breakdown: bool = False, model: str = "predator",
+                  compare: bool = True, matchability: bool = False) -> dict[str, Any]:
+    """One profile's figures: the data pipeline, the training step and inference on ``pairs`` training
+    pairs of its data set (``root``; else generated box rooms), memory, and the optional breakdown."""
+    import torch
+
+    from pcrcg.models.module import PCRCGModule
+
+    cfg = profile_config(profile, model)
+    m, t = cfg["model"], cfg["trainer"]
+    data_root = Path(root) if root else REPO / "data" / f"synthmatch-{profile}"
+    lifting = _lifting(color, profile, model)
+    samples, source = _samples(data_root, m["voxel_size"], pairs, int(lifting["projection"]["views"]) if lifting else 0)
+    collate, limits, cold, warm = _collate(samples, m, t)
+
+    torch.manual_seed(0)
+    module = PCRCGModule({**m, "neighbor_limits": list(limits)}, optim=t.get("optim"), lifting=lifting).to(device)
+    if matchability and hasattr(module, "matchability_gate"):
+        module.matchability_gate.fill_(1.0)
+    opt = module.configure_optimizers()["optimizer"]
+    batches = [collate([s]).to(device) for s in samples]
+    sync = (lambda: torch.cuda.synchronize()) if device.startswith("cuda") else (lambda: None)
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    s_train, s_infer, stages, compared = _time_steps(module, opt, batches, sync, reps, compare, breakdown)
+
     n0 = [int(b.pyramid.lengths[0].sum()) for b in batches]
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device.startswith("cuda")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     return {
         "profile": profile, "model": model, "device": device, "data": source, "color": color, "pairs": len(samples),
-        "voxel": m["voxel_size"], "levels": m["num_layers"], "first_dim": m["first_dim"], "params": n_params,
+        "voxel": m["voxel_size"], "levels": m["num_layers"], "first_dim": m["first_dim"],
+        "params": sum(p.numel() for p in module.net.parameters()),
         "in_dim": module.in_dim, "level0_points_per_pair": float(np.mean(n0)), "neighbor_limits": list(limits),
         "data_s_per_pair_cold": float(np.mean(cold)), "data_s_per_pair_warm": float(np.mean(warm)),
         "train_s_per_pair": s_train, "infer_s_per_pair": s_infer, "optimizer": type(opt).__name__,
