@@ -78,6 +78,20 @@ def test_geometric_embedding_is_invariant_to_a_rigid_motion():
         assert float((emb(pts * torch.tensor([1.5, 1.0, 1.0], dtype=torch.float64)) - a).abs().max()) > 1e-2
 
 
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_geometric_embedding_without_gradients_equals_the_formula_as_written(dtype, tol):
+    """forward without gradients (no interleaved embedding, running max over k) against reference (the
+    formula as written): the same values to float rounding; with gradients forward is reference."""
+    torch.manual_seed(1)
+    pts = (torch.rand(40, 3) * 2.0).to(dtype)
+    emb = GeometricStructureEmbedding(16, sigma_d=0.2, sigma_a=15.0, angle_k=3).to(dtype)
+    with torch.no_grad():
+        fast, ref = emb(pts), emb.reference(pts)
+    torch.testing.assert_close(fast, ref, atol=tol, rtol=tol)
+    assert float(ref.abs().max()) > 0.1  # not a trivially small output
+    assert torch.equal(emb(pts), emb.reference(pts))  # with gradients: the formula as written
+
+
 def test_triplet_angles_known_values():
     # a right angle at the origin: the neighbour of p0 is p1 (distance 1), p2 lies on the y axis
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])

@@ -6,6 +6,16 @@ For superpoints p_i of one cloud, the embedding of the pair (i, j) is
 
 over the ``k`` nearest neighbours x of p_i, with ``s`` the sinusoidal embedding of a scalar. It
 depends only on distances and angles, so it is invariant to a rigid motion of the cloud.
+
+The (N, N, k, hidden_dim) tensors make it the GeoTransformer's costliest stage on a CPU (N: superpoints,
+~550 per fragment at the cpu profile). Without gradients (inference, evaluation),
+:meth:`GeometricStructureEmbedding.forward` computes the formula without the interleaved embedding
+(:func:`sinusoidal_linear`: the projection's even weight columns take the sines, the odd ones the
+cosines) and takes the max over the k neighbours as a running elementwise maximum, one neighbour at a
+time: the same values to float rounding (the same products summed in another order;
+``tests/test_geotransformer.py``), 1.8 -> 1.4 s per cloud of 550 superpoints on one CPU thread. With
+gradients it runs :meth:`~GeometricStructureEmbedding.reference`, the formula as written: the running
+maximum's backward costs more than it saves (0.6 -> 1.5 s per cloud, measured).
 """
 
 from __future__ import annotations
@@ -13,6 +23,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -22,6 +33,17 @@ def sinusoidal_embedding(x: torch.Tensor, dim: int) -> torch.Tensor:
     freq = torch.exp(torch.arange(0, dim, 2, device=x.device, dtype=x.dtype) * (-math.log(10000.0) / dim))
     phase = x.unsqueeze(-1) * freq  # (..., dim / 2)
     return torch.stack([torch.sin(phase), torch.cos(phase)], dim=-1).flatten(-2)
+
+
+def sinusoidal_linear(x: torch.Tensor, linear: nn.Linear, dim: int) -> torch.Tensor:
+    """``linear(sinusoidal_embedding(x, dim))``: x (...) -> (..., out), without the (..., dim) embedding
+    (the sines meet the weight's even columns, the cosines its odd ones: the same terms, summed as two
+    half-width products)."""
+    freq = torch.exp(torch.arange(0, dim, 2, device=x.device, dtype=x.dtype) * (-math.log(10000.0) / dim))
+    phase = x.unsqueeze(-1) * freq  # (..., dim / 2)
+    w = linear.weight
+    out = F.linear(torch.sin(phase), w[:, 0::2], linear.bias)
+    return out + F.linear(torch.cos(phase), w[:, 1::2])
 
 
 def pairwise_distances(points: torch.Tensor) -> torch.Tensor:
@@ -62,6 +84,20 @@ class GeometricStructureEmbedding(nn.Module):
         return dist / self.sigma_d, triplet_angles(points, self.angle_k, dist) * self.factor_a
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """points (N, 3) -> (N, N, hidden_dim): :meth:`reference` when gradients are recorded, else its
+        values computed in less time and memory (module docstring)."""
+        if torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters()):
+            return self.reference(points)
+        d_idx, a_idx = self.indices(points)
+        out = sinusoidal_linear(d_idx, self.proj_d, self.dim)
+        a_emb = None
+        for j in range(a_idx.shape[2]):  # the max over the k neighbours, one neighbour at a time
+            y = sinusoidal_linear(a_idx[:, :, j], self.proj_a, self.dim)
+            a_emb = y if a_emb is None else torch.maximum(a_emb, y)
+        return out + a_emb
+
+    def reference(self, points: torch.Tensor) -> torch.Tensor:
+        """The formula as written: the interleaved embeddings, their projections, the max over k."""
         d_idx, a_idx = self.indices(points)
         d_emb = self.proj_d(sinusoidal_embedding(d_idx, self.dim))
         a_emb = self.proj_a(sinusoidal_embedding(a_idx, self.dim)).max(dim=2).values
