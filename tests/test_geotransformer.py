@@ -79,17 +79,25 @@ def test_geometric_embedding_is_invariant_to_a_rigid_motion():
 
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_geometric_embedding_without_gradients_equals_the_formula_as_written(dtype, tol):
-    """forward without gradients (no interleaved embedding, running max over k) against reference (the
-    formula as written): the same values to float rounding; with gradients forward is reference."""
+def test_geometric_embedding_equals_the_formula_as_written_with_gradients(dtype, tol):
+    """forward (no (N, N, k, d) tensors, running max over k, its own backward) against reference (the
+    formula as written, autograd): the same values and parameter gradients to float rounding."""
     torch.manual_seed(1)
     pts = (torch.rand(40, 3) * 2.0).to(dtype)
     emb = GeometricStructureEmbedding(16, sigma_d=0.2, sigma_a=15.0, angle_k=3).to(dtype)
-    with torch.no_grad():
-        fast, ref = emb(pts), emb.reference(pts)
-    torch.testing.assert_close(fast, ref, atol=tol, rtol=tol)
-    assert float(ref.abs().max()) > 0.1  # not a trivially small output
-    assert torch.equal(emb(pts), emb.reference(pts))  # with gradients: the formula as written
+    g = torch.randn(40, 40, 16, dtype=dtype)
+    outs = []
+    for fn in (emb.reference, emb.forward):
+        emb.zero_grad()
+        out = fn(pts)
+        (out * g).sum().backward()
+        outs.append((out.detach(), [p.grad.clone() for p in emb.parameters()]))
+    torch.testing.assert_close(outs[1][0], outs[0][0], atol=tol, rtol=tol)
+    for a, b in zip(outs[1][1], outs[0][1]):
+        torch.testing.assert_close(a, b, atol=tol * 100, rtol=tol * 10)
+    assert float(outs[0][0].abs().max()) > 0.1 and all(float(p.abs().max()) > 0 for p in outs[0][1])
+    with torch.no_grad():  # inference: the same
+        torch.testing.assert_close(emb(pts), outs[0][0], atol=tol, rtol=tol)
 
 
 def test_triplet_angles_known_values():

@@ -8,14 +8,16 @@ over the ``k`` nearest neighbours x of p_i, with ``s`` the sinusoidal embedding 
 depends only on distances and angles, so it is invariant to a rigid motion of the cloud.
 
 The (N, N, k, hidden_dim) tensors make it the GeoTransformer's costliest stage on a CPU (N: superpoints,
-~550 per fragment at the cpu profile). Without gradients (inference, evaluation),
-:meth:`GeometricStructureEmbedding.forward` computes the formula without the interleaved embedding
-(:func:`sinusoidal_linear`: the projection's even weight columns take the sines, the odd ones the
-cosines) and takes the max over the k neighbours as a running elementwise maximum, one neighbour at a
-time: the same values to float rounding (the same products summed in another order;
-``tests/test_geotransformer.py``), 1.8 -> 1.4 s per cloud of 550 superpoints on one CPU thread. With
-gradients it runs :meth:`~GeometricStructureEmbedding.reference`, the formula as written: the running
-maximum's backward costs more than it saves (0.6 -> 1.5 s per cloud, measured).
+~550 per fragment at the cpu profile). :meth:`GeometricStructureEmbedding.forward` computes the formula
+without them (:class:`_MaxOfProjections`): the projection of the sinusoidal embedding as two half-width
+products (the weight's even columns take the sines, the odd ones the cosines), the max over the k angle
+neighbours as a running maximum that remembers which neighbour won each channel, and a backward that
+recomputes the sines and cosines and gives each channel's gradient to that neighbour (the first on
+ties, as ``max``). :meth:`~GeometricStructureEmbedding.reference` is the formula as written, with
+autograd; both give the same values and gradients to float rounding (the same products summed in
+another order; ``tests/test_geotransformer.py``). Every pass runs on blocks of rows small enough to
+stay in the CPU's cache: the embedding is memory-bound, not compute-bound (a pass over 10M floats
+costs about what their sines cost).
 """
 
 from __future__ import annotations
@@ -35,15 +37,65 @@ def sinusoidal_embedding(x: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.stack([torch.sin(phase), torch.cos(phase)], dim=-1).flatten(-2)
 
 
-def sinusoidal_linear(x: torch.Tensor, linear: nn.Linear, dim: int) -> torch.Tensor:
-    """``linear(sinusoidal_embedding(x, dim))``: x (...) -> (..., out), without the (..., dim) embedding
-    (the sines meet the weight's even columns, the cosines its odd ones: the same terms, summed as two
-    half-width products)."""
+def _sines_cosines(x: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two halves of :func:`sinusoidal_embedding`: x (...) -> sin, cos (..., dim / 2)."""
     freq = torch.exp(torch.arange(0, dim, 2, device=x.device, dtype=x.dtype) * (-math.log(10000.0) / dim))
-    phase = x.unsqueeze(-1) * freq  # (..., dim / 2)
-    w = linear.weight
-    out = F.linear(torch.sin(phase), w[:, 0::2], linear.bias)
-    return out + F.linear(torch.cos(phase), w[:, 1::2])
+    phase = x.unsqueeze(-1) * freq
+    return torch.sin(phase), torch.cos(phase)
+
+
+CHUNK_VALUES = 1 << 20  # sines (or cosines) per block of rows: ~4 MB in float32, so a block's passes stay in cache
+
+
+def _row_blocks(rows: int, dim: int) -> list[slice]:
+    step = max(1, CHUNK_VALUES // max(1, dim // 2))
+    return [slice(a, min(rows, a + step)) for a in range(0, rows, step)]
+
+
+class _MaxOfProjections(torch.autograd.Function):
+    """``max_k linear(sinusoidal_embedding(x[..., k]))``: x (..., k) without gradient, weight (out, dim),
+    bias (out,) -> (..., out), with gradients for the weight and the bias (module docstring). Rows are
+    processed in blocks of ~1M sines so that every pass over a block stays in the CPU's cache."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None,  # type: ignore[override]
+                dim: int) -> torch.Tensor:
+        k, n_out = x.shape[-1], weight.shape[0]
+        xr = x.reshape(-1, k)
+        out = weight.new_empty((xr.shape[0], n_out))
+        arg = torch.zeros((xr.shape[0], n_out), dtype=torch.uint8, device=x.device)
+        w_sin, w_cos = weight[:, 0::2].t(), weight[:, 1::2].t()
+        for rows in _row_blocks(xr.shape[0], dim):
+            best = out[rows]
+            for j in range(k):
+                sin, cos = _sines_cosines(xr[rows, j], dim)
+                y = torch.mm(sin, w_sin) if bias is None else torch.addmm(bias, sin, w_sin)
+                y.addmm_(cos, w_cos)
+                if j == 0:
+                    best.copy_(y)
+                else:
+                    arg[rows].masked_fill_(y > best, j)  # strictly greater: the first maximum wins, as max
+                    torch.maximum(best, y, out=best)
+        ctx.save_for_backward(x, arg)
+        ctx.dim, ctx.has_bias = dim, bias is not None
+        return out.reshape(*x.shape[:-1], n_out)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        x, arg = ctx.saved_tensors
+        dim, k, n_out = ctx.dim, x.shape[-1], grad.shape[-1]
+        xr, g = x.reshape(-1, k), grad.reshape(-1, n_out)
+        d_sin = grad.new_zeros((n_out, dim // 2))
+        d_cos = grad.new_zeros((n_out, dim // 2))
+        for rows in _row_blocks(xr.shape[0], dim):
+            g_rows = g[rows]
+            for j in range(k):
+                sin, cos = _sines_cosines(xr[rows, j], dim)
+                g_j = g_rows * (arg[rows] == j) if k > 1 else g_rows
+                d_sin.addmm_(g_j.t(), sin)
+                d_cos.addmm_(g_j.t(), cos)
+        d_weight = torch.stack([d_sin, d_cos], dim=-1).reshape(n_out, dim)
+        return None, d_weight, (g.sum(0) if ctx.has_bias else None), None
 
 
 def pairwise_distances(points: torch.Tensor) -> torch.Tensor:
@@ -84,17 +136,11 @@ class GeometricStructureEmbedding(nn.Module):
         return dist / self.sigma_d, triplet_angles(points, self.angle_k, dist) * self.factor_a
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        """points (N, 3) -> (N, N, hidden_dim): :meth:`reference` when gradients are recorded, else its
-        values computed in less time and memory (module docstring)."""
-        if torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters()):
-            return self.reference(points)
+        """points (N, 3) -> (N, N, hidden_dim): :meth:`reference`'s values and gradients, computed without
+        the (N, N, k, hidden_dim) tensors (module docstring)."""
         d_idx, a_idx = self.indices(points)
-        out = sinusoidal_linear(d_idx, self.proj_d, self.dim)
-        a_emb = None
-        for j in range(a_idx.shape[2]):  # the max over the k neighbours, one neighbour at a time
-            y = sinusoidal_linear(a_idx[:, :, j], self.proj_a, self.dim)
-            a_emb = y if a_emb is None else torch.maximum(a_emb, y)
-        return out + a_emb
+        d_emb = _MaxOfProjections.apply(d_idx.unsqueeze(-1), self.proj_d.weight, self.proj_d.bias, self.dim)
+        return d_emb + _MaxOfProjections.apply(a_idx, self.proj_a.weight, self.proj_a.bias, self.dim)
 
     def reference(self, points: torch.Tensor) -> torch.Tensor:
         """The formula as written: the interleaved embeddings, their projections, the max over k."""
