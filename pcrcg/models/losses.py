@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from pcrcg.fields import NodeSettings
+from pcrcg.models.kpconv.conv import get_implementation
 
 
 @dataclass
@@ -100,8 +101,6 @@ def masked_circle_loss(pos: torch.Tensor, neg: torch.Tensor, feats_dist: torch.T
     as a sparse set); the KPConv implementation ``dense`` (:func:`pcrcg.models.kpconv.implementation`,
     the previous code) runs the reference, :func:`masked_circle_loss_reference`. The two agree to float
     rounding (``tests/test_speed_equivalence.py``)."""
-    from pcrcg.models.kpconv.conv import get_implementation
-
     if get_implementation() == "dense":
         return masked_circle_loss_reference(pos, neg, feats_dist, pos_margin, neg_margin, pos_optimal, neg_optimal,
                                             log_scale, pos_scales)
@@ -275,8 +274,6 @@ def matchability_labels(src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_desc: 
     if len(src_xyz) == 0 or len(tgt_xyz) == 0:
         z = src_xyz.new_zeros
         return z(len(src_xyz)), z(len(tgt_xyz))
-    from pcrcg.models.kpconv.conv import get_implementation
-
     if get_implementation() == "dense" or src_desc.device.type != "cpu":  # the previous code
         scores = src_desc @ tgt_desc.t()
         best_t, best_s = scores.argmax(1), scores.argmax(0)

@@ -185,19 +185,19 @@ class CrossAttention(nn.Module):
         q = self.q(x).view(n, self.h, d).transpose(0, 1)  # (h, N, d)
         k = self.k(source).view(-1, self.h, d).transpose(0, 1)  # (h, M, d)
         v = self.v(source).view(-1, self.h, d).transpose(0, 1)
+        parts = [x]
         if not self.strength and source.shape[0] > 0 and get_implementation() != "dense":
             # torch's fused attention: the same softmax(q k^T / sqrt(d)) v without the (h, N, M) logits
             # and probabilities (float rounding only; the previous code under implementation dense)
             heads = F.scaled_dot_product_attention(q.unsqueeze(0), k.unsqueeze(0), v.unsqueeze(0)).squeeze(0)
-            return self.mlp2(F.relu(self.norm(self.mlp1(torch.cat([x, self.merge(
-                heads.transpose(0, 1).reshape(n, c))], dim=-1)))))
-        logits = q @ k.transpose(1, 2) / d**0.5  # (h, N, M)
-        attn = torch.softmax(logits, dim=-1)
-        msg = self.merge((attn @ v).transpose(0, 1).reshape(n, c))
-        parts = [x, msg]
-        if self.strength:
-            m = logits.shape[-1]
-            parts.append((torch.logsumexp(logits, dim=-1) - math.log(max(m, 1))).transpose(0, 1))  # (N, h)
+            parts.append(self.merge(heads.transpose(0, 1).reshape(n, c)))
+        else:
+            logits = q @ k.transpose(1, 2) / d**0.5  # (h, N, M)
+            attn = torch.softmax(logits, dim=-1)
+            parts.append(self.merge((attn @ v).transpose(0, 1).reshape(n, c)))
+            if self.strength:
+                m = logits.shape[-1]
+                parts.append((torch.logsumexp(logits, dim=-1) - math.log(max(m, 1))).transpose(0, 1))  # (N, h)
         return self.mlp2(F.relu(self.norm(self.mlp1(torch.cat(parts, dim=-1)))))
 
 

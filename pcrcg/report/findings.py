@@ -34,7 +34,7 @@ import pandas as pd
 
 from pcrcg.errors import ConfigError
 from pcrcg.report.orderings import MEAN, OrderingLine, StatsSettings, check_orderings
-from pcrcg.report.spec import Column, Comparison, Row, TableSpec
+from pcrcg.report.spec import Column, Comparison, Row, TableSpec, run_command
 from pcrcg.report.stats import HOLDS, REVERSED
 from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
@@ -63,9 +63,7 @@ class Selection:
 
     def command(self, profile: str | None, seeds: Sequence[int]) -> str:
         """The command that runs this row's configs (every seed of the findings)."""
-        parts = ["python -m pcrcg.run", f"+experiment={self.experiment}", self.job,
-                 f"profile={profile}" if profile else "", f"seed={','.join(str(s) for s in seeds)}" if seeds else "", "-m"]
-        return " ".join(p for p in parts if p)
+        return run_command(self.experiment, self.job, profile, seeds) + ("" if seeds else " -m")
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,15 @@ METRIC_TITLES = {
 LOWER_IS_BETTER = ("RRE_deg", "RTE_m")
 
 
+def run_command(experiment: str, job: str | None = None, profile: str | None = None,
+                seeds: Sequence[int] = ()) -> str:
+    """``python -m pcrcg.run +experiment=<experiment> <job> [profile=..] [seed=a,b -m]``: the command that
+    runs one job of an experiment (``default``: the main job, without an experiment file)."""
+    parts = ["python -m pcrcg.run", "" if experiment == "default" else f"+experiment={experiment}", job or "",
+             f"profile={profile}" if profile else "", f"seed={','.join(str(s) for s in seeds)} -m" if seeds else ""]
+    return " ".join(p for p in parts if p)
+
+
 @dataclass(frozen=True)
 class Row:
     method: str
@@ -68,11 +77,8 @@ class Row:
         return self.label or (f"{self.method} {self.variant}".strip())
 
     def command(self, experiment: str, profile: str | None = None) -> str:
-        """The command that makes this row's runs when the experiment's sweep does not (``job``); experiment
-        ``default`` is the main job, ``python -m pcrcg.run`` without an experiment file."""
-        parts = ["python -m pcrcg.run", "" if experiment == "default" else f"+experiment={experiment}",
-                 self.job or "", f"profile={profile}" if profile else ""]
-        return " ".join(p for p in parts if p)
+        """The command that makes this row's runs when the experiment's sweep does not (``job``)."""
+        return run_command(experiment, self.job, profile)
 
 
 @dataclass(frozen=True)

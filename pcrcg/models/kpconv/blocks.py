@@ -29,11 +29,17 @@ def normalize_channels(x: torch.Tensor, dims: tuple[int, ...], eps: float) -> to
     return _normalize_forward(x, dims, eps)[0]
 
 
-def _normalize_forward(x: torch.Tensor, dims: tuple[int, ...], eps: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(normalised x, 1 / std) by two passes of sums (:func:`normalize_channels`)."""
+def _count(x: torch.Tensor, dims: tuple[int, ...]) -> int:
+    """How many entries each channel's mean over ``dims`` averages."""
     n = 1
     for d in dims:
         n *= x.shape[d]
+    return n
+
+
+def _normalize_forward(x: torch.Tensor, dims: tuple[int, ...], eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(normalised x, 1 / std) by two passes of sums (:func:`normalize_channels`)."""
+    n = _count(x, dims)
     dev = x - x.sum(dim=dims, keepdim=True) / n
     rstd = torch.rsqrt((dev * dev).sum(dim=dims, keepdim=True) / n + eps)
     return dev.mul_(rstd), rstd
@@ -56,9 +62,7 @@ class _NormalizeChannels(torch.autograd.Function):
     def backward(ctx, g: torch.Tensor):  # type: ignore[override]
         y, rstd = ctx.saved_tensors
         dims = ctx.dims
-        n = 1
-        for d in dims:
-            n *= y.shape[d]
+        n = _count(y, dims)
         mean_g = g.sum(dim=dims, keepdim=True) / n
         mean_gy = (g * y).sum(dim=dims, keepdim=True) / n
         gx = y * mean_gy
