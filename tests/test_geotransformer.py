@@ -23,7 +23,8 @@ from pcrcg.models.geotransformer.superpoints import (
     point_to_node_partition,
     superpoint_matching,
 )
-from pcrcg.models.geotransformer.transport import log_optimal_transport
+from pcrcg.models.geotransformer.transport import SCALING_RANGE, log_optimal_transport, log_sinkhorn, scaling_sinkhorn
+from pcrcg.models.kpconv import implementation
 
 
 def rigid(seed: int, shift: float = 1.0) -> torch.Tensor:
@@ -40,13 +41,15 @@ def move(T: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------- optimal transport
 
 
-def test_sinkhorn_marginals_with_dustbins_and_padding():
+@pytest.mark.parametrize("impl", ["auto", "dense"])  # the scaling form and the log-domain reference
+def test_sinkhorn_marginals_with_dustbins_and_padding(impl: str):
     torch.manual_seed(0)
     scores = torch.randn(2, 6, 5, requires_grad=True)
     rows = torch.tensor([[1, 1, 1, 1, 0, 0], [1, 1, 1, 1, 1, 1]], dtype=torch.bool)
     cols = torch.tensor([[1, 1, 1, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
     alpha = torch.tensor(0.5, requires_grad=True)
-    logP = log_optimal_transport(scores, alpha, rows, cols, iterations=200)  # (2, 7, 6)
+    with implementation(impl):
+        logP = log_optimal_transport(scores, alpha, rows, cols, iterations=200)  # (2, 7, 6)
     P = torch.exp(logP.detach())
     for b in range(2):
         m, n = int(rows[b].sum()), int(cols[b].sum())
@@ -60,6 +63,53 @@ def test_sinkhorn_marginals_with_dustbins_and_padding():
         assert float(P[b, :, :-1][:, ~cols[b]].abs().sum()) < 1e-6
     (torch.exp(logP[:, :-1, :-1]) * torch.randn(2, 6, 5)).sum().backward()
     assert torch.isfinite(scores.grad).all() and torch.isfinite(alpha.grad)
+
+
+def _transport_and_grads(impl: str, scores: torch.Tensor, alpha: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor,
+                         weights: torch.Tensor, iterations: int) -> tuple[torch.Tensor, ...]:
+    s, a = scores.clone().requires_grad_(), alpha.clone().requires_grad_()
+    with implementation(impl):
+        out = log_optimal_transport(s, a, rows, cols, iterations)
+    valid = out.detach() > -1e8
+    (torch.exp(out) * weights * valid).sum().backward()
+    return out.detach(), valid, s.grad, a.grad
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-11), (torch.float32, 2e-5)])
+@pytest.mark.parametrize("shape", [(1, 40, 33), (6, 9, 9)])
+def test_scaling_sinkhorn_equals_the_log_domain_reference(dtype: torch.dtype, tol: float, shape: tuple[int, int, int]):
+    """The scaling form (default) and the log-sum-exp reference (``dense``): the same plan and the same
+    unrolled gradients (scores and the dustbin score) to float rounding, padding included."""
+    torch.manual_seed(1)
+    b, m, n = shape
+    scores = torch.randn(shape, dtype=dtype) * 3.0
+    rows, cols = torch.rand(b, m) > 0.25, torch.rand(b, n) > 0.25
+    alpha, weights = torch.tensor(0.7, dtype=dtype), torch.randn(b, m + 1, n + 1, dtype=dtype)
+    new = _transport_and_grads("auto", scores, alpha, rows, cols, weights, 50)
+    ref = _transport_and_grads("dense", scores, alpha, rows, cols, weights, 50)
+    assert torch.equal(new[1], ref[1])
+    torch.testing.assert_close(new[0][new[1]], ref[0][ref[1]], atol=tol * 10, rtol=tol)
+    for g_new, g_ref in zip(new[2:], ref[2:]):
+        assert torch.isfinite(g_new).all()
+        torch.testing.assert_close(g_new, g_ref, atol=tol * float(g_ref.abs().max()), rtol=tol)
+    # the form itself, not only the dispatch: a wrong scaling step would differ (the test can fail)
+    lm, ln = torch.full((b, m), -math.log(m + n), dtype=dtype), torch.full((b, n), -math.log(m + n), dtype=dtype)
+    torch.testing.assert_close(scaling_sinkhorn(scores, lm, ln, 7), log_sinkhorn(scores, lm, ln, 7), atol=tol * 10, rtol=tol)
+    assert float((scaling_sinkhorn(scores, lm, ln, 7) - log_sinkhorn(scores, lm, ln, 6)).abs().max()) > 1e-4
+
+
+def test_scores_too_spread_for_the_scaling_form_take_the_reference():
+    """Scores spanning more than SCALING_RANGE would underflow whole rows of exp(scores): the reference
+    runs, and the plan is still finite with finite gradients."""
+    scores = torch.zeros(1, 4, 3)
+    scores[0, 0, 0] = SCALING_RANGE[torch.float32] + 30.0
+    rows, cols = torch.ones(1, 4, dtype=torch.bool), torch.ones(1, 3, dtype=torch.bool)
+    w = torch.ones(1, 5, 4)
+    auto = _transport_and_grads("auto", scores, torch.tensor(0.0), rows, cols, w, 20)
+    ref = _transport_and_grads("dense", scores, torch.tensor(0.0), rows, cols, w, 20)
+    for x, y in zip(auto, ref):
+        assert torch.equal(x, y)  # the same code ran
+    assert torch.isfinite(auto[0]).all() and torch.isfinite(auto[2]).all()
 
 
 # --------------------------------------------------------------------------- embedding
