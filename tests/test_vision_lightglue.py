@@ -307,3 +307,12 @@ def test_match_residuals_are_exact_on_known_geometry(pair):
     assert np.nanmax(e) < 1e-4
     res = precision([np.stack([e + 4.0, np.zeros_like(e)], 1)])
     assert res["precision"] == 0.0 and res["precision_debiased"] == 1.0 and res["with_depth"] == len(e)
+
+
+def test_a_methods_own_image_size_wins_over_the_benchmarks_grid():
+    """``--methods "lightglue:image_size=null"`` matches at the native size (it silently used the grid)."""
+    from pcrcg.benchmarks.matching import matcher_config
+
+    assert matcher_config("sift", (120, 160), "tiny").image_size == (120, 160)
+    assert matcher_config("sift:image_size=null", (120, 160), "tiny").image_size is None
+    assert matcher_config("lightglue:image_size=[60,80]", (120, 160), "tiny").image_size == (60, 80)

@@ -98,7 +98,8 @@ def precision(residuals: Sequence[np.ndarray], px: float = PRECISION_PX) -> dict
 def matcher_config(method: str, image_size: Sequence[int] | None, profile: str = "cpu") -> Any:
     """``conf/matcher2d/<method>.yaml`` (composed as a run composes it) with ``image_size`` set. ``method``
     may carry settings of its group after colons, ``lightglue:filter_threshold=0.5:min_matches=20``
-    (``matcher2d.<key>=<value>`` each), to compare variants of one matcher in one table."""
+    (``matcher2d.<key>=<value>`` each), to compare variants of one matcher in one table; an
+    ``image_size`` among them wins over the argument (``lightglue:image_size=null``: native size)."""
     from pcrcg.config import load_run_config
     from pcrcg.vision.matching import MatcherConfig
 
@@ -106,6 +107,8 @@ def matcher_config(method: str, image_size: Sequence[int] | None, profile: str =
     overrides = [f"matcher2d.{kv.strip()}" for kv in settings if kv.strip()]
     cfg = load_run_config([f"matcher2d={name}", f"profile={profile}", *overrides], validate=False)
     m = MatcherConfig.from_cfg(cfg.matcher2d)
+    if any(kv.split("=", 1)[0].strip() == "image_size" for kv in settings):
+        return m
     return replace(m, image_size=tuple(image_size) if image_size else None)
 
 
@@ -293,7 +296,7 @@ def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks
                     row[tag] = r.color_coverage
                 rows.append(row)
     title = (f"generated views: {root} (3 views per fragment, view pairs {'/'.join(pair_modes)}, matched at "
-             f"{grid[1]}x{grid[0]}; coverage = share of both fragments' points lifted, depth tolerance {depth_tolerance} m)")
+             f"{grid[1]}x{grid[0]} unless a method sets image_size; coverage = share of both fragments' points lifted, depth tolerance {depth_tolerance} m)")
     return rows, title
 
 
