@@ -12,7 +12,8 @@
 # evaluation; joblib would wait for the slowest job of each table). Each lane runs its jobs one after
 # another with one torch thread; both lanes write to one MLflow store and share checkpoints (a lane that
 # needs a model the other lane is training waits on its lock; the Pri3D weights are made on demand, once).
-# Relaunching runs only what is missing. SEEDS="0,1,2" adds seed=0,1,2 to every job.
+# Relaunching runs only what is missing. SEEDS="0,1,2" adds seed=0,1,2 to every job. LANES=1: one lane
+# (the jobs one after another), for a machine with one core free.
 set -u
 cd "$(dirname "$0")/.."
 LOGS=${LOGS:-outputs/lanes}
@@ -26,6 +27,6 @@ COMMON="profile=cpu runtime.report_on_end=false${SEEDS:+ seed=$SEEDS}"
 
 mapfile -t JOBS < <("$PYTHON" -m pcrcg.experiments --jobs "$@") || exit 2
 [ "${#JOBS[@]}" -gt 0 ] || { echo "cpu_two_lanes.sh: no jobs (python -m pcrcg.experiments --jobs $*)" >&2; exit 2; }
-two_lanes
+two_lanes || exit $?
 run "$PYTHON" -m pcrcg.report profile=cpu
 [ "$DRY_RUN" = 1 ] || echo "Tables: reports/README.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

@@ -5,6 +5,7 @@
 #
 #   sweeps/findings.sh [profile]          # profile: cpu (default) | tiny | paper
 #   DRY_RUN=1 sweeps/findings.sh cpu      # print the commands, run nothing
+#   LANES=1 sweeps/findings.sh cpu        # one lane: the jobs one after another (one core free)
 #
 # The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`), so a finding
 # added to conf/report.yaml is swept here. Resumable: a run skips its config when a FINISHED run of the
@@ -31,7 +32,7 @@ if [ "${#JOBS[@]}" -eq 0 ]; then
 fi
 COMMON="profile=$PROFILE runtime.report_on_end=false${SEEDS:+ seed=$SEEDS}"
 
-two_lanes
+two_lanes || exit $?
 
 # the real scene: built once from ../shared/data (when it is here), then every run of the findings' experiments on it
 L=$LOGS/real.log

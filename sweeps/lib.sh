@@ -47,25 +47,31 @@ run() {  # run <command...>: in the foreground (output to the terminal), or prin
   "$@"
 }
 
-lane() {  # lane <1|2>: every other job of the array JOBS ("<experiment> [overrides...]" each), from job 1 or 2,
-  local k=$(( $1 - 1 )) L=$LOGS/lane$1.log   # logged to $LOGS/lane<n>.log
+lane() {  # lane <n> [lanes]: every lanes-th job of the array JOBS ("<experiment> [overrides...]" each), from
+  local k=$(( $1 - 1 )) of=${2:-2} L=$LOGS/lane$1.log   # job n, logged to $LOGS/lane<n>.log
   while [ "$k" -lt "${#JOBS[@]}" ]; do
     # shellcheck disable=SC2086  # "<experiment> [overrides...]"
     job "$L" ${JOBS[$k]}
-    k=$(( k + 2 ))
+    k=$(( k + of ))
   done
 }
 
-two_lanes() {  # the jobs of JOBS as two single-core lanes at once (printed one lane after the other with DRY_RUN=1)
+two_lanes() {  # the jobs of JOBS as LANES (default 2) single-core lanes at once; LANES=1: one after another
+  local lanes=${LANES:-2}   # (a core busy with other work); printed one lane after the other with DRY_RUN=1
+  case $lanes in 1|2) ;; *) echo "LANES=$lanes: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
   if [ "$DRY_RUN" = 1 ]; then
-    echo "# lane 1"; lane 1
-    echo "# lane 2"; lane 2
+    local n
+    for n in $(seq 1 "$lanes"); do echo "# lane $n"; lane "$n" "$lanes"; done
     return 0
   fi
   mkdir -p "$LOGS"
   # a brand-new SQLite store is created once, before the lanes write to it at once
   "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
-  lane 1 & local p1=$!
-  lane 2 & local p2=$!
+  if [ "$lanes" = 1 ]; then
+    lane 1 1
+    return 0
+  fi
+  lane 1 2 & local p1=$!
+  lane 2 2 & local p2=$!
   wait "$p1" "$p2"
 }

@@ -66,3 +66,19 @@ def test_the_two_lanes_script_deals_every_job_once():
     bad = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "nope"], cwd=REPO, env=env, capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "nope" in bad.stderr
+
+
+def test_one_lane_runs_every_job_in_order_and_a_bad_lane_count_stops_before_any_job():
+    env = {**os.environ, "DRY_RUN": "1", "PYTHON": sys.executable, "LANES": "1"}
+    out = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "window_size", "views"], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert "# lane 2" not in lines and lines[0] == "# lane 1"
+    jobs = [ln.split("runtime.report_on_end=false ")[1][:-3] for ln in lines if " -m pcrcg.run " in ln]
+    assert jobs == [f"window_size={w}" for w in (3, 7, 11, 17)] + [f"views={v}" for v in (1, 2, 3)]
+    for script in ("sweeps/cpu_two_lanes.sh", "sweeps/findings.sh"):
+        bad = subprocess.run(["bash", script], cwd=REPO, env={**env, "LANES": "3"}, capture_output=True,
+                             text=True, timeout=120)
+        assert bad.returncode == 2 and "LANES=3" in bad.stderr, script
+        assert " -m pcrcg." not in bad.stdout  # neither a job nor the report
