@@ -285,9 +285,13 @@ def test_configs_compose_and_share_one_base():
     base = OmegaConf.load(CONF_DIR / "matcher2d" / "common" / "base.yaml")
     for name in ("sift", "orb", "lightglue"):
         node = load_run_config([f"matcher2d={name}", "profile=cpu"], validate=False).matcher2d
+        own = OmegaConf.load(CONF_DIR / "matcher2d" / f"{name}.yaml")
         for key in base:  # every matcher takes the shared settings from the one base (none keeps a copy)
             assert key in node, (name, key)
-            assert key not in OmegaConf.load(CONF_DIR / "matcher2d" / f"{name}.yaml"), (name, key)
+            if (name, key) == ("lightglue", "image_size"):  # the one override: the learned matcher's own size
+                assert OmegaConf.to_yaml(own) != OmegaConf.to_yaml(base) and "match_image_size" in OmegaConf.to_yaml(own)
+                continue
+            assert key not in own, (name, key)
     assert "contrast_threshold" not in load_run_config(["matcher2d=orb"], validate=False).matcher2d  # SIFT-only
     with pytest.raises(ConfigError) as e:
         load_run_config(["profile=tiny", "matcher2d=lightglue", "matcher2d.pairs=best"])
@@ -316,3 +320,23 @@ def test_a_methods_own_image_size_wins_over_the_benchmarks_grid():
     assert matcher_config("sift", (120, 160), "tiny").image_size == (120, 160)
     assert matcher_config("sift:image_size=null", (120, 160), "tiny").image_size is None
     assert matcher_config("lightglue:image_size=[60,80]", (120, 160), "tiny").image_size == (60, 80)
+
+
+def test_the_cpu_profile_matches_the_views_at_their_own_size_onto_the_papers_grid():
+    """cpu: LightGlue sees the generated 200x150 views whole (more and better matches than at 160x120);
+    SIFT and ORB, and the projection grid, stay at 160x120 (window_size keeps the paper's meaning); the
+    other profiles match at the grid. The matching benchmark matches as a run does (AS_RUN)."""
+    from pcrcg.benchmarks.matching import AS_RUN, matcher_config
+    from pcrcg.config import load_run_config
+
+    for name, size in (("sift", (120, 160)), ("orb", (120, 160)), ("lightglue", (150, 200))):
+        cfg = load_run_config([f"matcher2d={name}", "profile=cpu", "projection=explicit"], validate=False)
+        assert MatcherConfig.from_cfg(cfg.matcher2d).image_size == size, name
+        assert list(cfg.projection.image_size) == [120, 160]
+        assert [cfg.profile.synth.height, cfg.profile.synth.width] == [150, 200]  # the views' own size
+    for profile in ("tiny", "paper", "official"):
+        cfg = load_run_config(["matcher2d=lightglue", f"profile={profile}"], validate=False)
+        assert MatcherConfig.from_cfg(cfg.matcher2d).image_size == tuple(cfg.profile.lifting.image_size), profile
+    assert matcher_config("lightglue", AS_RUN, "cpu").image_size == (150, 200)
+    assert matcher_config("lightglue", (120, 160), "cpu").image_size == (120, 160)
+    assert matcher_config("lightglue:image_size=null", AS_RUN, "cpu").image_size is None

@@ -20,7 +20,8 @@ Prints two tables (asserts nothing):
 * **generated views** (``--root``, default ``data/synthmatch-cpu`` once its ``manifest.json`` exists,
   else ``data/synthmatch-tiny``; skipped when absent): the 3DMatch and 3DLoMatch pairs (``--pairs``
   per benchmark, evenly spread), 3 views per fragment, the view pairs of ``matcher2d.pairs``, matched
-  at the projection grid (``profile.lifting.image_size``) as a run matches them: matches per view pair,
+  as a run of the profile matches them (at ``profile.lifting.match_image_size``: cpu, the views' 200x150;
+  the matches land on the projection grid ``profile.lifting.image_size``): matches per view pair,
   precision (3 px of the grid, through the ground-truth pose), and explicit color coverage at windows
   3/7/11/17 (2 views) and views 1/2/3 (11x11) from :func:`pcrcg.lifting.coverage.coverage_sweep`
   (implicit coverage beside it for reference). ``--pair-modes paper,covisible`` adds rows with the
@@ -95,11 +96,15 @@ def precision(residuals: Sequence[np.ndarray], px: float = PRECISION_PX) -> dict
             "precision_debiased": float((d < px).mean())}
 
 
-def matcher_config(method: str, image_size: Sequence[int] | None, profile: str = "cpu") -> Any:
-    """``conf/matcher2d/<method>.yaml`` (composed as a run composes it) with ``image_size`` set. ``method``
-    may carry settings of its group after colons, ``lightglue:filter_threshold=0.5:min_matches=20``
-    (``matcher2d.<key>=<value>`` each), to compare variants of one matcher in one table; an
-    ``image_size`` among them wins over the argument (``lightglue:image_size=null``: native size)."""
+AS_RUN = "as_run"  # matcher_config: the image_size a run of the profile matches at
+
+
+def matcher_config(method: str, image_size: Sequence[int] | None | str, profile: str = "cpu") -> Any:
+    """``conf/matcher2d/<method>.yaml`` (composed as a run composes it) with ``image_size`` set (``AS_RUN``:
+    left as the profile composes it, ``profile.lifting.match_image_size``). ``method`` may carry settings
+    of its group after colons, ``lightglue:filter_threshold=0.5:min_matches=20`` (``matcher2d.<key>=<value>``
+    each), to compare variants of one matcher in one table; an ``image_size`` among them wins over the
+    argument (``lightglue:image_size=null``: native size)."""
     from pcrcg.config import load_run_config
     from pcrcg.vision.matching import MatcherConfig
 
@@ -107,7 +112,7 @@ def matcher_config(method: str, image_size: Sequence[int] | None, profile: str =
     overrides = [f"matcher2d.{kv.strip()}" for kv in settings if kv.strip()]
     cfg = load_run_config([f"matcher2d={name}", f"profile={profile}", *overrides], validate=False)
     m = MatcherConfig.from_cfg(cfg.matcher2d)
-    if any(kv.split("=", 1)[0].strip() == "image_size" for kv in settings):
+    if image_size == AS_RUN or any(kv.split("=", 1)[0].strip() == "image_size" for kv in settings):
         return m
     return replace(m, image_size=tuple(image_size) if image_size else None)
 
@@ -266,7 +271,7 @@ def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks
         for bench in benchmarks:
             samples = load_samples(str(root), bench, n_pairs, n_views=3)
             for method, mode in [(m, pm) for pm in pair_modes for m in methods]:
-                cfg = replace(matcher_config(method, grid, profile), pairs=mode)
+                cfg = replace(matcher_config(method, AS_RUN, profile), pairs=mode)
                 label = method if mode == "paper" else f"{method}/{mode}"
                 cache = MatchCache(Path(tmp) / f"{bench}-{method}-{mode}")
                 images, todo = {}, []
@@ -295,8 +300,11 @@ def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks
                         f"_w{r.window_size}" if r.projection == "explicit" else "")
                     row[tag] = r.color_coverage
                 rows.append(row)
+    match = profile_node(profile).lifting.match_image_size
+    at = "native size" if match is None else f"{match[1]}x{match[0]}"
     title = (f"generated views: {root} (3 views per fragment, view pairs {'/'.join(pair_modes)}, matched at "
-             f"{grid[1]}x{grid[0]} unless a method sets image_size; coverage = share of both fragments' points lifted, depth tolerance {depth_tolerance} m)")
+             f"{at} as a {profile} run unless a method sets image_size, onto the {grid[1]}x{grid[0]} grid; "
+             f"coverage = share of both fragments' points lifted, depth tolerance {depth_tolerance} m)")
     return rows, title
 
 
