@@ -259,3 +259,14 @@ def test_bad_value_in_an_experiment_sweep_stops_before_any_job(tmp_path, monkeyp
     assert "invalid config value window_size=8" in err and "no job was started" in err
     assert not (tmp_path / "mlflow.db").exists()
     assert not list(tmp_path.rglob("pcrcg_status.json"))
+
+
+def test_a_long_table_title_is_wrapped_to_the_figure_width():
+    """A table's title ran off both edges of its recall and coverage figures; it is broken into lines."""
+    from pcrcg.plots.recall import _wrap
+
+    title = "CoFiNet with and without the projection module (3DLoMatch registration recall; RANSAC on N)"
+    text, lines = _wrap(title, 3.5, 9)
+    assert lines > 1 and text.replace("\n", " ") == title
+    assert max(len(line) for line in text.splitlines()) <= int(3.5 * 72 / (0.55 * 9))
+    assert _wrap("Table 1", 10.0, 9) == ("Table 1", 1)

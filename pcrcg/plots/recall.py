@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import re
+import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING, Mapping
 
@@ -18,6 +19,14 @@ def _n_axis(ax, sizes: list[int]) -> None:
     ax.set_xticks(range(len(sizes)))
     ax.set_xticklabels([str(n) for n in sizes])
     ax.set_xlabel("# sampled points")
+
+
+def _wrap(title: str, width_in: float, fontsize: float) -> tuple[str, int]:
+    """``title`` broken into lines that fit a figure ``width_in`` inches wide at ``fontsize`` points (a long
+    table title ran off both edges), and the number of lines."""
+    chars = max(20, int(width_in * 72 / (0.55 * fontsize)))  # ~0.55 em per character of the default font
+    text = textwrap.fill(title, width=chars)
+    return text, text.count("\n") + 1
 
 
 _KEY = re.compile(r"^(?P<bench>[^/]+)/(?P<metric>rr|fmr|ir)_(?P<n>\d+)$")
@@ -87,9 +96,10 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
     legend_w = 2.8 / fig.get_figwidth()
     if handles:
         fig.legend(handles, labels, loc="center right", fontsize=7, frameon=False)
-    fig.suptitle(table.spec.title, fontsize=9)
-    fig.subplots_adjust(left=0.7 / fig.get_figwidth(), right=1 - legend_w - 0.01, bottom=0.15, top=0.85,
-                        wspace=0.35)
+    title, lines = _wrap(table.spec.title, fig.get_figwidth(), 9)
+    fig.suptitle(title, fontsize=9)
+    fig.subplots_adjust(left=0.7 / fig.get_figwidth(), right=1 - legend_w - 0.01, bottom=0.15,
+                        top=0.85 - 0.045 * (lines - 1), wspace=0.35)
     return save_figure(fig, path, dpi=110)
 
 
@@ -107,7 +117,7 @@ def plot_coverage(table: FilledTable, path: Path) -> Path | None:
     ax.set_xticklabels(labels, rotation=20, ha="right", fontsize=8)
     ax.set_ylim(0, 1.0)
     ax.set_ylabel("color coverage")
-    ax.set_title(f"{table.spec.title}: color coverage", fontsize=9)
+    ax.set_title(_wrap(f"{table.spec.title}: color coverage", 0.8 * fig.get_figwidth(), 9)[0], fontsize=9)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     return save_figure(fig, path, dpi=110)
