@@ -57,21 +57,16 @@ lane() {  # lane <n> [lanes]: every lanes-th job of the array JOBS ("<experiment
 }
 
 two_lanes() {  # the jobs of JOBS as LANES (default 2) single-core lanes at once; LANES=1: one after another
-  local lanes=${LANES:-2}   # (a core busy with other work); printed one lane after the other with DRY_RUN=1
+  local n lanes=${LANES:-2}   # (a core busy with other work); printed one lane after the other with DRY_RUN=1
   case $lanes in 1|2) ;; *) echo "LANES=$lanes: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
   if [ "$DRY_RUN" = 1 ]; then
-    local n
     for n in $(seq 1 "$lanes"); do echo "# lane $n"; lane "$n" "$lanes"; done
     return 0
   fi
   mkdir -p "$LOGS"
   # a brand-new SQLite store is created once, before the lanes write to it at once
   "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
-  if [ "$lanes" = 1 ]; then
-    lane 1 1
-    return 0
-  fi
-  lane 1 2 & local p1=$!
-  lane 2 2 & local p2=$!
-  wait "$p1" "$p2"
+  local pids=()
+  for n in $(seq 1 "$lanes"); do lane "$n" "$lanes" & pids+=("$!"); done
+  wait "${pids[@]}"
 }

@@ -265,7 +265,8 @@ def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks
     from pcrcg.lifting.coverage import coverage_sweep, load_samples
     from pcrcg.vision.matching import MatchCache, matched_view_pairs
 
-    grid = tuple(profile_node(profile).lifting.image_size)
+    lifting = profile_node(profile).lifting
+    grid = tuple(lifting.image_size)
     rows = []
     with tempfile.TemporaryDirectory(prefix="pcrcg-matchbench-") as tmp:
         for bench in benchmarks:
@@ -300,7 +301,7 @@ def bench_generated(root: Path, methods: Sequence[str], n_pairs: int, benchmarks
                         f"_w{r.window_size}" if r.projection == "explicit" else "")
                     row[tag] = r.color_coverage
                 rows.append(row)
-    match = profile_node(profile).lifting.match_image_size
+    match = lifting.match_image_size
     at = "native size" if match is None else f"{match[1]}x{match[0]}"
     title = (f"generated views: {root} (3 views per fragment, view pairs {'/'.join(pair_modes)}, matched at "
              f"{at} as a {profile} run unless a method sets image_size, onto the {grid[1]}x{grid[0]} grid; "
