@@ -6,13 +6,14 @@
 #   sweeps/findings.sh [profile]          # profile: cpu (default) | tiny | paper
 #   DRY_RUN=1 sweeps/findings.sh cpu      # print the commands, run nothing
 #   LANES=1 sweeps/findings.sh cpu        # one lane: the jobs one after another (one core free)
+#   ONLY=^main_results sweeps/findings.sh # only the jobs that match this extended regex (finding 1 first)
 #
 # The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`), so a finding
 # added to conf/report.yaml is swept here. Resumable: a run skips its config when a FINISHED run of the
 # same config and code exists, so relaunching (after a crash, over several sittings) runs only what is
 # missing; the lanes share trained models (checkpoints/, under a file lock) and one MLflow store.
-# Jobs alternate between the lanes in the spec's order (each lane: one job after another; the cpu
-# profile trains with one torch thread).
+# The jobs run seed by seed (every job with seed=0, then seed=1, ...), each in the spec's order; each lane
+# takes the next one as soon as it is free (the cpu profile trains with one torch thread).
 set -u
 cd "$(dirname "$0")/.."
 PROFILE=${1:-cpu}
@@ -30,7 +31,17 @@ if [ "${#JOBS[@]}" -eq 0 ]; then
   echo "findings.sh: conf/report.yaml defines no findings (findings.claims)" >&2
   exit 2
 fi
-COMMON="profile=$PROFILE runtime.report_on_end=false${SEEDS:+ seed=$SEEDS}"
+filter_jobs || exit 2
+# seed by seed: every job of seed 0, then of seed 1, ...: a sweep stopped half way has whole seeds of
+# every row it reached, so its findings already compare like with like
+if [ -n "$SEEDS" ]; then
+  BASE=("${JOBS[@]}")
+  JOBS=()
+  for s in ${SEEDS//,/ }; do
+    for j in "${BASE[@]}"; do JOBS+=("$j seed=$s"); done
+  done
+fi
+COMMON="profile=$PROFILE runtime.report_on_end=false"
 
 two_lanes || exit $?
 

@@ -3,6 +3,8 @@
 #   PYTHON   the interpreter (default .venv/bin/python)
 #   COMMON   overrides added to every job (e.g. "profile=cpu runtime.report_on_end=false")
 #   DRY_RUN  1: print each command instead of running it (nothing is written)
+#   LANES    1 or 2 (default): single-core lanes at once, fed from one queue
+#   ONLY     an extended regex: only the jobs ("<experiment> [overrides...]") that match it
 
 PYTHON=${PYTHON:-.venv/bin/python}
 DRY_RUN=${DRY_RUN:-0}
@@ -47,26 +49,54 @@ run() {  # run <command...>: in the foreground (output to the terminal), or prin
   "$@"
 }
 
-lane() {  # lane <n> [lanes]: every lanes-th job of the array JOBS ("<experiment> [overrides...]" each), from
-  local k=$(( $1 - 1 )) of=${2:-2} L=$LOGS/lane$1.log   # job n, logged to $LOGS/lane<n>.log
-  while [ "$k" -lt "${#JOBS[@]}" ]; do
+next_job() {  # next_job: the index of the next job of JOBS that no lane has taken yet (the shared queue
+  local n                      # $QUEUE, a counter under a file lock); fails when every job is taken
+  exec 9>>"$QUEUE.lock"
+  flock 9
+  n=$(cat "$QUEUE" 2>/dev/null || echo 0)
+  echo $(( n + 1 )) >"$QUEUE"
+  flock -u 9
+  exec 9>&-
+  [ "$n" -lt "${#JOBS[@]}" ] && echo "$n"
+}
+
+lane() {  # lane <n>: takes the next job of the array JOBS ("<experiment> [overrides...]" each) from the shared
+  local k L=$LOGS/lane$1.log   # queue as long as one is left, logged to $LOGS/lane<n>.log
+  while k=$(next_job); do
     # shellcheck disable=SC2086  # "<experiment> [overrides...]"
     job "$L" ${JOBS[$k]}
-    k=$(( k + of ))
   done
 }
 
-two_lanes() {  # the jobs of JOBS as LANES (default 2) single-core lanes at once; LANES=1: one after another
-  local n lanes=${LANES:-2}   # (a core busy with other work); printed one lane after the other with DRY_RUN=1
+filter_jobs() {  # filter_jobs: keeps the jobs of JOBS that match the extended regex $ONLY (when set); fails
+  [ -n "${ONLY:-}" ] || return 0   # (one line to stderr) when none does
+  local kept=() j
+  for j in "${JOBS[@]}"; do [[ $j =~ $ONLY ]] && kept+=("$j"); done
+  if [ "${#kept[@]}" -eq 0 ]; then
+    echo "ONLY=$ONLY matches no job (of ${#JOBS[@]}: ${JOBS[0]} ...)" >&2
+    return 2
+  fi
+  JOBS=("${kept[@]}")
+}
+
+two_lanes() {  # the jobs of JOBS on LANES (default 2) single-core lanes at once: each lane takes the next job in
+  local n lanes=${LANES:-2}   # order as soon as it is free (jobs differ a lot in length); LANES=1: one after another
   case $lanes in 1|2) ;; *) echo "LANES=$lanes: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
   if [ "$DRY_RUN" = 1 ]; then
-    for n in $(seq 1 "$lanes"); do echo "# lane $n"; lane "$n" "$lanes"; done
+    echo "# queue: $lanes lane(s), each takes the next job when it is free"
+    for n in "${!JOBS[@]}"; do
+      # shellcheck disable=SC2086  # "<experiment> [overrides...]"
+      job - ${JOBS[$n]}
+    done
     return 0
   fi
   mkdir -p "$LOGS"
+  QUEUE=$LOGS/queue.$$
+  echo 0 >"$QUEUE"
   # a brand-new SQLite store is created once, before the lanes write to it at once
   "$PYTHON" -c "import mlflow; mlflow.MlflowClient('$MLFLOW_TRACKING_URI').search_experiments()" >/dev/null 2>&1
   local pids=()
-  for n in $(seq 1 "$lanes"); do lane "$n" "$lanes" & pids+=("$!"); done
+  for n in $(seq 1 "$lanes"); do lane "$n" & pids+=("$!"); done
   wait "${pids[@]}"
+  rm -f "$QUEUE" "$QUEUE.lock"
 }

@@ -61,7 +61,9 @@ def test_the_two_lanes_script_deals_every_job_once():
     jobs = sorted(ln.split("runtime.report_on_end=false seed=0,1 ")[1][:-3] for ln in runs)
     assert jobs == sorted([f"window_size={w}" for w in (3, 7, 11, 17)] + [f"views={v}" for v in (1, 2, 3)])
     lines = out.stdout.splitlines()
-    assert lines.index("# lane 2") == 5  # four jobs on lane 1 (1st, 3rd, ...), three on lane 2
+    assert lines[0] == "# queue: 2 lane(s), each takes the next job when it is free"
+    order = [ln.split("seed=0,1 ")[1][:-3] for ln in runs]
+    assert order == [f"window_size={w}" for w in (3, 7, 11, 17)] + [f"views={v}" for v in (1, 2, 3)]
     assert lines[-1].endswith("-m pcrcg.report profile=cpu")
     bad = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "nope"], cwd=REPO, env=env, capture_output=True,
                          text=True, timeout=120)
@@ -74,7 +76,7 @@ def test_one_lane_runs_every_job_in_order_and_a_bad_lane_count_stops_before_any_
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
-    assert "# lane 2" not in lines and lines[0] == "# lane 1"
+    assert lines[0] == "# queue: 1 lane(s), each takes the next job when it is free"
     jobs = [ln.split("runtime.report_on_end=false ")[1][:-3] for ln in lines if " -m pcrcg.run " in ln]
     assert jobs == [f"window_size={w}" for w in (3, 7, 11, 17)] + [f"views={v}" for v in (1, 2, 3)]
     for script in ("sweeps/cpu_two_lanes.sh", "sweeps/findings.sh"):
@@ -82,3 +84,29 @@ def test_one_lane_runs_every_job_in_order_and_a_bad_lane_count_stops_before_any_
                              text=True, timeout=120)
         assert bad.returncode == 2 and "LANES=3" in bad.stderr, script
         assert " -m pcrcg." not in bad.stdout  # neither a job nor the report
+    only = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "window_size", "views"], cwd=REPO,
+                          env={**env, "ONLY": "^views"}, capture_output=True, text=True, timeout=120)
+    assert only.returncode == 0, only.stderr
+    assert [ln.split("runtime.report_on_end=false ")[1][:-3] for ln in only.stdout.splitlines()
+            if " -m pcrcg.run " in ln] == [f"views={v}" for v in (1, 2, 3)]
+    none = subprocess.run(["bash", "sweeps/cpu_two_lanes.sh", "window_size"], cwd=REPO,
+                          env={**env, "ONLY": "^views"}, capture_output=True, text=True, timeout=120)
+    assert none.returncode == 2 and "ONLY=^views matches no job" in none.stderr and " -m pcrcg." not in none.stdout
+
+
+def test_the_lanes_queue_gives_every_job_to_exactly_one_lane(tmp_path):
+    """Two lanes at once take jobs from one queue (sweeps/lib.sh next_job): each job runs once, none is lost."""
+    script = f"""
+set -u
+. sweeps/lib.sh
+LOGS={tmp_path}
+MLFLOW_TRACKING_URI=sqlite:///{tmp_path}/m.db
+PYTHON=true
+JOBS=(a b c d e f g h i j k)
+job() {{ sleep 0.0$RANDOM; echo "$2" >>{tmp_path}/done; }}
+two_lanes
+"""
+    out = subprocess.run(["bash", "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert sorted((tmp_path / "done").read_text().split()) == list("abcdefghijk")
+    assert not list(tmp_path.glob("queue.*"))

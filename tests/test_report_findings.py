@@ -239,11 +239,12 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     spec = load_findings()
     for f in spec.claims:
         for s in f.rows:
-            want = f"+experiment={s.experiment} profile=cpu runtime.report_on_end=false seed=0,1,2 {s.job} -m"
-            assert sum(ln.endswith(want) for ln in runs) == 1, (f.claim, s.name)
-    assert len(runs) == len(spec.jobs())
-    lanes = out.split("# lane 2")
-    assert lanes[0].count(" -m pcrcg.run ") == 11 and lanes[1].count(" -m pcrcg.run ") == 10
+            for seed in (0, 1, 2):
+                want = f"+experiment={s.experiment} profile=cpu runtime.report_on_end=false {s.job} seed={seed} -m"
+                assert sum(ln.endswith(want) for ln in runs) == 1, (f.claim, s.name, seed)
+    assert len(runs) == 3 * len(spec.jobs())
+    seeds = [int(ln.split(" seed=")[1][:-3]) for ln in runs]
+    assert seeds == sorted(seeds)  # seed by seed: every job of seed 0 before any of seed 1
     assert f"-m pcrcg.prepare data=threedmatch data.source.fragments_dir={tmp_path}/real-3dmatch-fragments" in out
     assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
     assert out.strip().splitlines()[-1].endswith("-m pcrcg.report profile=cpu")
