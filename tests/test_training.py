@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import lightning as L
 from lightning.pytorch.callbacks import Callback
 
 from pcrcg.errors import DataError
@@ -101,7 +102,15 @@ class CountSteps(Callback):
             raise RuntimeError("simulated crash")
 
 
-def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root):
+def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root, monkeypatch):
+    saves = []
+    real_save = L.Trainer.save_checkpoint
+
+    def spy(self, filepath, weights_only=None, storage_options=None):
+        saves.append(weights_only)
+        return real_save(self, filepath, weights_only=weights_only, storage_options=storage_options)
+
+    monkeypatch.setattr(L.Trainer, "save_checkpoint", spy)
     # no periodic checkpoint before the crash: last.ckpt must come from the crash itself
     cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=4, checkpoint_every_n_steps=100), "seed": 0,
            "data": {"root": str(toy_root)}}
@@ -111,6 +120,7 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root):
         train(cfg, out_dir=out_dir, callbacks=[first])
     last = out_dir / "checkpoints" / "last.ckpt"
     assert last.is_file() and first.steps == 2
+    assert saves and all(w is False for w in saves)  # the full state, said explicitly (no log line per save)
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == 2 and ck["optimizer_states"][0]["state"]  # momentum buffers saved
     assert len(ck["hyper_parameters"]["model"]["neighbor_limits"]) == 3

@@ -91,7 +91,9 @@ class LastCheckpoint(Callback):
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name(f"{self.path.stem}.tmp-{os.getpid()}.ckpt")
-        trainer.save_checkpoint(str(tmp))
+        # the whole state (optimiser, loops, callbacks) to resume from, said explicitly: Lightning logs a line
+        # at every save when weights_only is left unset (reading it back is weights_only=True all the same)
+        trainer.save_checkpoint(str(tmp), weights_only=False)
         if trainer.is_global_zero:
             os.replace(tmp, self.path)
         self._saved_step = trainer.global_step
