@@ -7,6 +7,7 @@
 #   DRY_RUN=1 sweeps/findings.sh cpu      # print the commands, run nothing
 #   LANES=1 sweeps/findings.sh cpu        # one lane: the jobs one after another (one core free)
 #   ONLY=^main_results sweeps/findings.sh # only the jobs that match this extended regex (finding 1 first)
+#   OUT=DIR sweeps/findings.sh            # where the report goes (default reports/findings-<profile>/)
 #
 # The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`), so a finding
 # added to conf/report.yaml is swept here. Resumable: a run skips its config when a FINISHED run of the
@@ -22,6 +23,7 @@ export MLFLOW_TRACKING_URI=${MLFLOW_TRACKING_URI:-sqlite:///$PWD/mlflow.db}
 # shellcheck source=sweeps/lib.sh
 . sweeps/lib.sh
 REAL_ROOT=${REAL_ROOT:-data/real-redkitchen}
+OUT=${OUT:-reports/findings-$PROFILE}
 SHARED=${SHARED:-../shared/data}
 
 SEEDS=$("$PYTHON" -m pcrcg.report.findings --seeds) || exit 2
@@ -57,5 +59,7 @@ if [ -d "$SHARED" ]; then
 else
   echo "findings.sh: $SHARED is not here: no real-scene evaluation (the findings show — in its columns)" >&2
 fi
-run "$PYTHON" -m pcrcg.report profile="$PROFILE"
-[ "$DRY_RUN" = 1 ] || echo "Findings: reports/findings.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"
+# the report of this sweep alone: the findings and the tables of its experiments, in their own folder (the
+# tables of reports/ may come from other sweeps and stores)
+run "$PYTHON" -m pcrcg.report profile="$PROFILE" "tables=[$EXPERIMENTS]" out_dir="$OUT"
+[ "$DRY_RUN" = 1 ] || echo "Findings: $OUT/findings.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

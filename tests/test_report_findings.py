@@ -247,7 +247,9 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     assert seeds == sorted(seeds)  # seed by seed: every job of seed 0 before any of seed 1
     assert f"-m pcrcg.prepare data=threedmatch data.source.fragments_dir={tmp_path}/real-3dmatch-fragments" in out
     assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
-    assert out.strip().splitlines()[-1].endswith("-m pcrcg.report profile=cpu")
+    assert out.strip().splitlines()[-1].endswith(
+        "-m pcrcg.report profile=cpu tables=[main_results,projection,views,backbone_2d,window_size,geotransformer,"
+        "icp_init] out_dir=reports/findings-cpu")
     assert not (tmp_path / "logs").exists()  # a dry run writes nothing
 
 
