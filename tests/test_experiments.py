@@ -110,3 +110,25 @@ two_lanes
     assert out.returncode == 0, out.stderr
     assert sorted((tmp_path / "done").read_text().split()) == list("abcdefghijk")
     assert not list(tmp_path.glob("queue.*"))
+
+
+@pytest.mark.parametrize("job", [
+    ["+experiment=icp_init", "method=icp", "icp_init=learned"],
+    ["+experiment=icp_init", "method=color_icp", "icp_init=learned"],
+    ["+experiment=ransac_budget", "features=deep", "registration=early_exit"],
+    ["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=explicit"],
+    ["+experiment=window_size", "window_size=11"],
+    ["+experiment=views_explicit", "views=2"],
+])
+def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
+    """icp_init's and ransac_budget's PCR-CG and the main rows of the explicit tables are main_results' PCR-CG
+    (their files say so): the same training identity, so its checkpoint is reused, not another model trained
+    (icp_init and ransac_budget once drew their windows around SIFT matches: another model)."""
+    from pcrcg.config import load_run_config
+    from pcrcg.pipeline import run_hash
+    from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE
+
+    def train_identity(overrides):
+        return run_hash(load_run_config([*overrides, "profile=cpu"], validate=False), TRAIN_HASH_EXCLUDE)
+
+    assert train_identity(job) == train_identity(["+experiment=main_results", "features=deep"])
