@@ -27,13 +27,14 @@ OUT=${OUT:-reports/findings-$PROFILE}
 SHARED=${SHARED:-../shared/data}
 
 SEEDS=$("$PYTHON" -m pcrcg.report.findings --seeds) || exit 2
-EXPERIMENTS=$("$PYTHON" -m pcrcg.report.findings --experiments) || exit 2
 mapfile -t JOBS < <("$PYTHON" -m pcrcg.report.findings --jobs)
 if [ "${#JOBS[@]}" -eq 0 ]; then
   echo "findings.sh: conf/report.yaml defines no findings (findings.claims)" >&2
   exit 2
 fi
 filter_jobs || exit 2
+# the experiments of the jobs this sweep runs (all of the findings', or those ONLY keeps), in the spec's order
+EXPERIMENTS=$(for j in "${JOBS[@]}"; do echo "${j%% *}"; done | awk '!seen[$0]++' | paste -sd, -)
 # seed by seed: every job of seed 0, then of seed 1, ...: a sweep stopped half way has whole seeds of
 # every row it reached, so its findings already compare like with like
 if [ -n "$SEEDS" ]; then
@@ -54,8 +55,11 @@ if [ -d "$SHARED" ]; then
     step "$L" "$PYTHON" -m pcrcg.prepare data=threedmatch data.source.fragments_dir="$SHARED/real-3dmatch-fragments" \
       data.source.rgbd_dir="$SHARED/real-rgbd" data.root="$REAL_ROOT"
   fi
-  step "$L" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$EXPERIMENTS]" data.root="$REAL_ROOT" \
-    name=real-redkitchen profile="$PROFILE"
+  # one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others
+  for e in ${EXPERIMENTS//,/ }; do
+    step "$L" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$e]" data.root="$REAL_ROOT" \
+      name=real-redkitchen profile="$PROFILE"
+  done
 else
   echo "findings.sh: $SHARED is not here: no real-scene evaluation (the findings show — in its columns)" >&2
 fi

@@ -246,7 +246,15 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     seeds = [int(ln.split(" seed=")[1][:-3]) for ln in runs]
     assert seeds == sorted(seeds)  # seed by seed: every job of seed 0 before any of seed 1
     assert f"-m pcrcg.prepare data=threedmatch data.source.fragments_dir={tmp_path}/real-3dmatch-fragments" in out
-    assert "-m pcrcg.evaluate mode=tracked experiments=[main_results,projection," in out and "name=real-redkitchen" in out
+    evals = [ln for ln in out.splitlines() if "-m pcrcg.evaluate mode=tracked" in ln]
+    assert [ln.split("experiments=[")[1].split("]")[0] for ln in evals] == [
+        "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init"]
+    assert all("name=real-redkitchen" in ln for ln in evals)
+    only = subprocess.run(["bash", "sweeps/findings.sh"], cwd=ROOT, env={**env, "ONLY": "^main_results"},
+                          capture_output=True, text=True, timeout=120, check=True).stdout
+    assert [ln.split("experiments=[")[1].split("]")[0] for ln in only.splitlines()
+            if "-m pcrcg.evaluate mode=tracked" in ln] == ["main_results"]  # not the experiments it did not run
+    assert only.strip().splitlines()[-1].endswith("tables=[main_results] out_dir=reports/findings-cpu")
     assert out.strip().splitlines()[-1].endswith(
         "-m pcrcg.report profile=cpu tables=[main_results,projection,views,backbone_2d,window_size,geotransformer,"
         "icp_init] out_dir=reports/findings-cpu")
