@@ -9,8 +9,8 @@
 # each table's sweep axes, in sweeps/all_tables.sh's order), one job per `pcrcg.run +experiment=<table>
 # key=value -m`, in one queue that two lanes take from, each the next job as soon as it is free, so that
 # both cores stay busy (a table's jobs differ a lot in length: geometry-only ~25 min, PCR-CG ~45 min, a job
-# that reuses a trained checkpoint ~25 min of evaluation; joblib would wait for the slowest job of each table). Each lane runs its jobs one after
-# another with one torch thread; both lanes write to one MLflow store and share checkpoints (a lane that
+# that reuses a trained checkpoint ~25 min of evaluation; joblib would wait for the slowest job of each
+# table). Each lane runs its jobs one after another with one torch thread; both lanes write to one MLflow store and share checkpoints (a lane that
 # needs a model the other lane is training waits on its lock; the Pri3D weights are made on demand, once).
 # Relaunching runs only what is missing. SEEDS="0,1,2" adds seed=0,1,2 to every job. LANES=1: one lane
 # (the jobs one after another), for a machine with one core free. ONLY=REGEX: only the matching jobs.

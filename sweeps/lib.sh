@@ -84,10 +84,9 @@ two_lanes() {  # the jobs of JOBS on LANES (default 2) single-core lanes at once
   case $lanes in 1|2) ;; *) echo "LANES=$lanes: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
   if [ "$DRY_RUN" = 1 ]; then
     echo "# queue: $lanes lane(s), each takes the next job when it is free"
-    for n in "${!JOBS[@]}"; do
-      # shellcheck disable=SC2086  # "<experiment> [overrides...]"
-      job - ${JOBS[$n]}
-    done
+    local j
+    # shellcheck disable=SC2086  # "<experiment> [overrides...]"
+    for j in "${JOBS[@]}"; do job - $j; done
     return 0
   fi
   mkdir -p "$LOGS"
