@@ -125,10 +125,9 @@ def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
     (their files say so): the same training identity, so its checkpoint is reused, not another model trained
     (icp_init and ransac_budget once drew their windows around SIFT matches: another model)."""
     from pcrcg.config import load_run_config
-    from pcrcg.pipeline import run_hash
-    from pcrcg.tracking.hashing import TRAIN_HASH_EXCLUDE
+    from pcrcg.pipeline import train_key
 
-    def train_identity(overrides):
-        return run_hash(load_run_config([*overrides, "profile=cpu"], validate=False), TRAIN_HASH_EXCLUDE)
+    def train_identity(overrides):  # the checkpoint cache's key, as a run computes it
+        return train_key(load_run_config([*overrides, "profile=cpu"], validate=False))
 
     assert train_identity(job) == train_identity(["+experiment=main_results", "features=deep"])
