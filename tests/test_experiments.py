@@ -119,6 +119,7 @@ two_lanes
     ["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=explicit"],
     ["+experiment=window_size", "window_size=11"],
     ["+experiment=views_explicit", "views=2"],
+    ["+experiment=backbone_2d", "encoder2d=pri3d", "encoder2d.training=detached"],
 ])
 def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
     """icp_init's and ransac_budget's PCR-CG and the main rows of the explicit tables are main_results' PCR-CG
@@ -131,3 +132,17 @@ def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
         return train_key(load_run_config([*overrides, "profile=cpu"], validate=False))
 
     assert train_identity(job) == train_identity(["+experiment=main_results", "features=deep"])
+
+
+def test_the_views_table_two_view_row_is_the_projection_table_pri3d_implicit_model():
+    """The paper's 2-view row is its Pri3D/implicit row: here the same training config, one checkpoint
+    (the views table once left the unused matcher at SIFT: another model trained for the same numbers)."""
+    from pcrcg.config import load_run_config
+    from pcrcg.pipeline import train_key
+
+    def key(overrides):
+        return train_key(load_run_config([*overrides, "profile=cpu"], validate=False))
+
+    implicit = key(["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=implicit"])
+    assert key(["+experiment=views", "views=2"]) == implicit
+    assert key(["+experiment=views", "views=1"]) != implicit

@@ -79,10 +79,11 @@ def _more(rng, ok: dict[str, np.ndarray], frac: float) -> dict[str, np.ndarray]:
 
 
 def _store(root: Path, flip: bool = False) -> str:
-    """main_results (3 seeds, real scene too), window_size (one seed) and views (one seed) runs.
+    """main_results (3 seeds, real scene too), window_size (3 seeds), views and projection (one seed) runs.
 
-    PCR-CG = Predator + 35% of the pairs (``flip``: the other way round); windows: 11x11 = 3x3 + 35%,
-    7x7 = 11x11 (no difference), 17x17 = 11x11 + 35%; 2 views = 1 view. No projection runs."""
+    PCR-CG = Predator + 35-45% of the pairs (``flip``: the other way round); it is also the 11x11 row
+    (conf/report.yaml reads main_results' PCR-CG there): 3x3 = Predator, 7x7 = PCR-CG (no difference),
+    17x17 = PCR-CG + 35%. 1 view = 2 views (the projection table's Pri3D/implicit run). No other projection runs."""
     from pcrcg.tracking.tracker import RunTracker
     from pcrcg.tracking.store import ensure_store
 
@@ -90,24 +91,21 @@ def _store(root: Path, flip: bool = False) -> str:
     ensure_store(uri)
     rng = np.random.default_rng(5)
     work = root / "work"
-    tr = RunTracker(uri, "main_results")
+    main, windows = RunTracker(uri, "main_results"), RunTracker(uri, "window_size")
     for seed in (0, 1, 2):
         weak, weak_real = _base(rng, SCENES, 0.3), _base(rng, REAL, 0.1)
         strong, strong_real = _more(rng, weak, 0.35 + 0.05 * seed), _more(rng, weak_real, 0.7)
         if flip:
             weak, strong, weak_real, strong_real = strong, weak, strong_real, weak_real
         for label, ok, real in (("Predator", weak, weak_real), ("PCR-CG", strong, strong_real)):
-            _run(tr, work, f"{label} seed={seed}", {"seed": seed, "encoder2d.name": "pri3d"}, {"label": label}, ok, real)
-    tr = RunTracker(uri, "window_size")
+            _run(main, work, f"{label} seed={seed}", {"seed": seed, "encoder2d.name": "pri3d"}, {"label": label}, ok, real)
+        for ws, ok in ((3, weak), (7, strong), (17, _more(rng, strong, 0.35))):
+            _run(windows, work, f"window_size={ws} seed={seed}", {"window_size": ws, "seed": seed, "encoder2d.name": "pri3d"},
+                 {"label": "PCR-CG"}, ok)
     w3 = _base(rng, SCENES, 0.3)
-    w11 = _more(rng, w3, 0.35)
-    for ws, ok in ((3, w3), (7, w11), (11, w11), (17, _more(rng, w11, 0.35))):
-        _run(tr, work, f"window_size={ws}", {"window_size": ws, "seed": 0, "encoder2d.name": "pri3d"},
-             {"label": "PCR-CG"}, ok)
-    tr = RunTracker(uri, "views")
-    for v in (1, 2):
-        _run(tr, work, f"views={v}", {"views": v, "seed": 0, "projection.name": "implicit", "encoder2d.name": "pri3d"},
-             {"label": "PCR-CG"}, w3)
+    implicit = {"seed": 0, "projection.name": "implicit", "encoder2d.name": "pri3d"}
+    _run(RunTracker(uri, "views"), work, "views=1", {"views": 1, **implicit}, {"label": "PCR-CG"}, w3)
+    _run(RunTracker(uri, "projection"), work, "deep/implicit", {"features.name": "deep", **implicit}, {"label": "PCR-CG"}, w3)
     return uri
 
 
@@ -137,8 +135,12 @@ def test_the_spec_has_the_papers_eight_claims_and_their_differences():
     assert [len(f.compare) for f in spec.claims] == [1, 1, 2, 1, 2, 3, 1, 2]
     assert {s.experiment for f in spec.claims for s in f.rows} == {
         "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init"}
-    assert ("projection", "features=deep encoder2d=pri3d projection=explicit") in spec.jobs()  # shared by 2 and 3, once
-    assert len(spec.jobs()) == len(set(spec.jobs())) == 21
+    # main_results' PCR-CG is also the deep/explicit (2, 3), Pri3D (5) and 11x11 (6) rows; the projection table's
+    # Pri3D/implicit row is also the 2-view row (4): each job once
+    assert ("main_results", "features=deep") in spec.jobs()
+    assert ("projection", "features=deep encoder2d=pri3d projection=explicit") not in spec.jobs()
+    assert ("views", "views=2") not in spec.jobs()
+    assert len(spec.jobs()) == len(set(spec.jobs())) == 17
 
 
 def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
@@ -182,14 +184,21 @@ def test_a_window_holds_one_is_not_resolved_one_is_reversed(report):
 
 
 def test_a_finding_without_runs_is_not_run_and_says_which_and_how(report):
-    [line] = _lines(report, 2)
+    line = _lines(report, 3, "deep/explicit − SIFT/explicit")[0]
     assert line.verdict == NOT_RUN and line.ours.interval is None
-    assert "no run of experiment 'projection'" in line.note and "projection.name=implicit" in line.note
-    assert ("python -m pcrcg.run +experiment=projection features=deep encoder2d=pri3d projection=implicit "
+    assert "no run of experiment 'projection'" in line.note and "features.name=sift" in line.note
+    assert ("python -m pcrcg.run +experiment=projection features=sift projection=explicit "
             "profile=cpu seed=0,1,2 -m") in line.note
-    assert _claim(report, 2) == NOT_RUN and _claim(report, 2, real=True) == NOT_RUN
+    assert _claim(report, 3) == NOT_RUN and _claim(report, 3, real=True) == NOT_RUN
     md = (report["out"] / "findings.md").read_text()
-    assert "| 2 | explicit > implicit projection for deep (Pri3D) features | not run | not run |" in md
+    assert "| 3 | deep > SIFT > RGB lifted features under the same (explicit) projection | not run | not run |" in md
+
+
+def test_a_row_reads_another_experiments_runs_of_the_same_config(report):
+    """Finding 2's deep/explicit row is main_results' PCR-CG (3 seeds); its implicit row the projection run."""
+    [line] = _lines(report, 2)
+    assert line.verdict == HOLDS and len(line.ours.row_runs) == 3 and len(line.ours.ref_runs) == 1
+    assert line.reference.experiment == "projection" and line.compared.experiment == "main_results"
 
 
 def test_files_index_and_code_versions(report):
@@ -201,7 +210,7 @@ def test_files_index_and_code_versions(report):
     assert row["claim_verdict"] == HOLDS and row["code_versions"] == "v1"
     assert len(row["compared_run_ids"].split(";")) == 3
     md = (out / "findings.md").read_text()
-    assert "code versions behind the findings: v1 (12 runs)" in md  # 6 main_results, 4 windows, 2 views
+    assert "code versions behind the findings: v1 (17 runs)" in md  # 6 main_results, 9 windows, views, projection
     assert "identity=config_and_code" in md
     index = (out / "README.md").read_text()
     assert "## The paper's findings, tested ([md](findings.md)" in index
