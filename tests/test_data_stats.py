@@ -254,6 +254,13 @@ def test_cli_end_to_end_on_tiny(tiny_root, tmp_path, capsys):
     assert col["depth"]["median_m"]["n"] == 12 and 0.4 < col["depth"]["median_m"]["median"] < 4.5
     assert data["settings"]["pairs"] == 2
     flat = col["summary"]
+    samp = col["sampling"]
+    assert samp["voxel"] == pytest.approx(0.06) and samp["n_points"] == [5000, 2500, 1000, 500, 250]
+    for b in ("3DMatch", "3DLoMatch"):
+        below = [samp[b]["below"][str(n)] for n in samp["n_points"]]
+        assert samp[b]["pairs"] == col["overlap"][b]["n"] and below == sorted(below, reverse=True)
+        assert flat[f"{b}_below_5000"] == samp[b]["below"]["5000"]
+    assert "fewer than N points at the profile's model voxel" in md and "5000: " in md
     assert flat["planarity_median"] == fr["planarity"]["median"] and flat["fragments"] == n_frag
     assert flat["3DMatch_fpfh_counted"] == col["fpfh"]["3DMatch"]["counted"]
     assert Path(f"{out}.png").stat().st_size > 10000
@@ -307,3 +314,11 @@ def test_real_folder_with_frames_and_benchmarks(tmp_path, capsys):
     assert 0.02 < col["depth"]["mean"] < 0.3
     assert 1.2 < col["depth"]["median_m"]["median"] < 2.6  # 7-Scenes' kitchen: 1.4-2.4 m per frame
     assert 0.0 < col["sift"]["covisibility"]["median"] < 1.0
+
+
+def test_below_n_is_the_share_of_pairs_under_each_sample_size():
+    from pcrcg.data.stats.collect import below_n
+
+    assert below_n(np.array([900, 2000, 3000, 6000]), [5000, 2500, 1000, 250]) == {
+        5000: 0.75, 2500: 0.5, 1000: 0.25, 250: 0.0}
+    assert below_n(np.array([], dtype=np.int64), [5000]) == {}

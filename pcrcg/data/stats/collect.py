@@ -12,7 +12,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -152,6 +152,51 @@ def selected_pairs(src: Source, n: int | None) -> dict[str, dict[str, Any]]:
             continue
         avail = [p for p in pairs if src.fragment(p.scene, p.i) and src.fragment(p.scene, p.j)]
         out[b] = {"listed": len(pairs), "available": avail, "selected": evenly(avail, n)}
+    return out
+
+
+# --------------------------------------------------------------------------- N against fragment size
+
+
+def profile_sampling(profile: str) -> tuple[float, tuple[int, ...]]:
+    """(model voxel in m, the protocol's sample sizes N) of ``conf/profile/<profile>.yaml``."""
+    cfg = evaluate_config(profile)
+    return float(cfg.profile.model.voxel_size), tuple(int(n) for n in cfg.profile.eval.n_points)
+
+
+def below_n(smaller: np.ndarray, n_points: Sequence[int]) -> dict[int, float]:
+    """Share of pairs (smaller: (P,) the point count of each pair's smaller fragment) with fewer than N
+    points, for each N; {} without pairs."""
+    smaller = np.asarray(smaller)
+    return {int(n): float(np.mean(smaller < n)) for n in n_points} if len(smaller) else {}
+
+
+def sampling_stats(src: Source, sel: dict[str, dict[str, Any]], voxel: float, n_points: Sequence[int],
+                   progress: bool = True) -> dict[str, Any]:
+    """How the protocol's N compare with the fragments the network sees: per benchmark, over every pair
+    whose fragments the column has, the points of each fragment after the network's first grid
+    subsampling (``pcrcg.models.kpconv.ops.grid_subsample`` at the model voxel) and, per N, the share of
+    pairs whose smaller fragment has fewer than N points. Predator's protocol draws such a fragment's N
+    points uniformly with replacement (``registration.fewer_points``), not by overlap x matchability: at
+    that N the learned sampling is off."""
+    from pcrcg.models.kpconv.ops import grid_subsample
+
+    counts: dict[tuple[str, int], int] = {}
+
+    def points(scene: str, index: int) -> int:
+        if (scene, index) not in counts:
+            pts, _ = read_cloud(src.fragment(scene, index).path)
+            counts[(scene, index)] = len(grid_subsample(pts, voxel))
+        return counts[(scene, index)]
+
+    out: dict[str, Any] = {"voxel": voxel, "n_points": [int(n) for n in n_points]}
+    for b, s in sel.items():
+        pairs = s["available"]
+        smaller = np.array([min(points(p.scene, p.i), points(p.scene, p.j))
+                            for p in tqdm(pairs, desc=f"N vs points {src.name} {b}", unit="pair",
+                                          disable=not progress, leave=False)], dtype=np.int64)
+        out[b] = {"pairs": int(len(smaller)), "smaller_points": M.summarize(smaller.tolist()),
+                  "below": below_n(smaller, n_points)}
     return out
 
 
@@ -407,6 +452,9 @@ def measure(src: Source, cfg: StatsConfig, eval_cfg=None, progress: bool = True)
     sel = selected_pairs(src, cfg.pairs)
     t["overlap"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    out["sampling"] = sampling_stats(src, sel, *profile_sampling(cfg.profile), progress=progress)
+    t["sampling"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     out["fpfh"] = fpfh_stats(src, sel, cfg, eval_cfg, progress) if cfg.fpfh else None
     t["fpfh"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -454,4 +502,6 @@ def flat_summary(col: dict[str, Any]) -> dict[str, Any]:
         out[f"{b}_overlap_median"] = get("overlap", b, "median")
         out[f"{b}_fpfh_rr"] = get("fpfh", b, "rr")
         out[f"{b}_fpfh_counted"] = get("fpfh", b, "counted")
+        for n, share in (get("sampling", b, "below") or {}).items():
+            out[f"{b}_below_{n}"] = share
     return out

@@ -111,6 +111,15 @@ def _depth_m(c: dict) -> str:
     return f"{m['median']:.2f} ({m['p10']:.2f}–{m['p90']:.2f})"
 
 
+def _below(c: dict, b: str) -> str:
+    s = c.get("sampling") or {}
+    if not (s.get(b) or {}).get("pairs"):
+        return DASH
+    below = s[b]["below"]
+    shares = " · ".join(f"{n}: {100 * below[n]:.0f}%" for n in sorted(below, key=int, reverse=True))
+    return f"{shares} ({s[b]['pairs']} pairs; median {s[b]['smaller_points']['median']:,.0f} points)"
+
+
 def _frag(c: dict) -> dict:
     return c.get("fragments") or {}
 
@@ -130,6 +139,9 @@ ROWS: list[tuple[str, Callable[[dict], str]]] = [
        (lambda b: lambda c: _motion(c, b))(b)) for b in BENCHMARKS],
     ("train pairs: overlap median; count 0–10/10–30/30–50/50–70/70–100%",
      lambda c: _overlap((c.get("overlap") or {}).get("train"))),
+    *[(f"{b} pairs whose smaller fragment has fewer than N points at the profile's model voxel (sampled "
+       "uniformly with replacement there, not by overlap): share per N (pairs; median smaller fragment)",
+       (lambda b: lambda c: _below(c, b))(b)) for b in BENCHMARKS],
     *[(f"FPFH + RANSAC RR, {b} (scene mean; registered/counted; pairs run of listed)",
        (lambda b: lambda c: _fpfh(c, b))(b)) for b in BENCHMARKS],
     *[(f"FPFH correspondences, {b}: inlier ratio (10 cm) / feature-match recall, mean over pairs",
