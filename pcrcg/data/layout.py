@@ -316,7 +316,7 @@ def write_gt_log(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
     for p in pairs:
         buf.write(f"{p.i}\t {p.j}\t {p.n_fragments}\t\n")
         buf.write(format_matrix(p.transform))
-    _atomic_write_text(Path(path), buf.getvalue())
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
@@ -345,7 +345,7 @@ def write_gt_info(
     for p, M in zip(pairs, infos, strict=True):
         buf.write(f"{p.i}\t {p.j}\t {p.n_fragments}\t\n")
         buf.write(format_matrix(M))
-    _atomic_write_text(Path(path), buf.getvalue())
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 def read_gt_overlap(path: str | os.PathLike) -> dict[tuple[int, int], float]:
@@ -364,7 +364,7 @@ def read_gt_overlap(path: str | os.PathLike) -> dict[tuple[int, int], float]:
 
 
 def write_gt_overlap(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
-    _atomic_write_text(Path(path), "".join(f"{p.i},{p.j},{p.overlap:.4f}\n" for p in pairs))
+    atomic_write_text(Path(path), "".join(f"{p.i},{p.j},{p.overlap:.4f}\n" for p in pairs))
 
 
 def write_pairs(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
@@ -373,7 +373,7 @@ def write_pairs(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
     for p in pairs:
         buf.write(f"{p.scene} {p.i} {p.j} {p.overlap:.4f}\n")
         buf.write(format_matrix(p.transform))
-    _atomic_write_text(Path(path), buf.getvalue())
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 def read_pairs(path: str | os.PathLike) -> list[PairRecord]:
@@ -392,7 +392,8 @@ def read_pairs(path: str | os.PathLike) -> list[PairRecord]:
     return out
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a ``.partial`` file and a rename: never a half-written file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(text)

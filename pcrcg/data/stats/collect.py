@@ -164,6 +164,15 @@ def profile_sampling(profile: str) -> tuple[float, tuple[int, ...]]:
     return float(cfg.profile.model.voxel_size), tuple(int(n) for n in cfg.profile.eval.n_points)
 
 
+def model_points(path: str | Path, voxel: float) -> int:
+    """Points of the fragment file ``path`` after the network's first grid subsampling at ``voxel`` (m):
+    the points the protocol samples N from (``pcrcg.models.kpconv.ops.grid_subsample``)."""
+    from pcrcg.models.kpconv.ops import grid_subsample
+
+    pts, _ = read_cloud(path)
+    return int(len(grid_subsample(pts, voxel)))
+
+
 def below_n(smaller: np.ndarray, n_points: Sequence[int]) -> dict[int, float]:
     """Share of pairs (smaller: (P,) the point count of each pair's smaller fragment) with fewer than N
     points, for each N; {} without pairs."""
@@ -179,14 +188,11 @@ def sampling_stats(src: Source, sel: dict[str, dict[str, Any]], voxel: float, n_
     pairs whose smaller fragment has fewer than N points. Predator's protocol draws such a fragment's N
     points uniformly with replacement (``registration.fewer_points``), not by overlap x matchability: at
     that N the learned sampling is off."""
-    from pcrcg.models.kpconv.ops import grid_subsample
-
     counts: dict[tuple[str, int], int] = {}
 
     def points(scene: str, index: int) -> int:
         if (scene, index) not in counts:
-            pts, _ = read_cloud(src.fragment(scene, index).path)
-            counts[(scene, index)] = len(grid_subsample(pts, voxel))
+            counts[(scene, index)] = model_points(src.fragment(scene, index).path, voxel)
         return counts[(scene, index)]
 
     out: dict[str, Any] = {"voxel": voxel, "n_points": [int(n) for n in n_points]}
