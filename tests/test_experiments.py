@@ -146,3 +146,27 @@ def test_the_views_table_two_view_row_is_the_projection_table_pri3d_implicit_mod
     implicit = key(["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=implicit"])
     assert key(["+experiment=views", "views=2"]) == implicit
     assert key(["+experiment=views", "views=1"]) != implicit
+
+
+@pytest.mark.parametrize("job, same_as", [
+    (["+experiment=ransac_budget", "features=none", "registration=default"], ["+experiment=main_results", "features=none"]),
+    (["+experiment=ransac_budget", "features=deep", "registration=default"], ["+experiment=main_results", "features=deep"]),
+    (["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=explicit"],
+     ["+experiment=main_results", "features=deep"]),
+    (["+experiment=window_size", "window_size=11"], ["+experiment=main_results", "features=deep"]),
+    (["+experiment=backbone_2d", "encoder2d=pri3d", "encoder2d.training=detached"], ["+experiment=main_results", "features=deep"]),
+    (["+experiment=views", "views=2"], ["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=implicit"]),
+])
+def test_rows_the_report_reads_from_another_experiment_are_the_same_run(job, same_as):
+    """conf/report.yaml reads these rows from the other experiment's runs (ransac_budget's Open3D 0.10 rows are
+    main_results' runs; the findings' deep/explicit, Pri3D, 11x11 and 2-view rows): training *and* evaluation
+    config identical, only experiment_name differs (the run's identity, not only its checkpoint)."""
+    from pcrcg.config import load_run_config
+    from pcrcg.pipeline import run_hash
+
+    def identity(overrides):
+        return run_hash(load_run_config([*overrides, "profile=cpu"], validate=False))
+
+    assert identity(job) == identity(same_as)
+    assert identity(["+experiment=ransac_budget", "features=none", "registration=early_exit"]) != identity(
+        ["+experiment=main_results", "features=none"])
