@@ -185,14 +185,25 @@ def store(tmp_path, monkeypatch, tiny_root):
     return {"uri": uri, "add": add, "base": tmp_path}
 
 
-def test_a_run_without_its_checkpoint_is_reported_and_skipped(store, tiny_root):
+def test_a_run_without_its_checkpoint_is_skipped_and_a_classical_run_is_run_again(store, tiny_root):
+    """A learned run whose model is gone is reported and skipped; a classical method (ICP from the identity:
+    no model) is run again on the other root, into its run, as a learned run's evaluation is."""
+    from pcrcg.evaluation.tracked import CLASSICAL_FROM
+
     gone = store["add"]()
-    fpfh = store["add"](method="fpfh")
+    icp = store["add"](method="icp")
     res = _tracked(["experiments=[main_results]", f"data.root={tiny_root}", f"name={NAME}"])
-    assert res["evaluated"] == [] and res["failed"] == []
+    assert res["failed"] == []
     reasons = {s["run_id"]: s["reason"] for s in res["skipped"]}
+    assert set(reasons) == {gone}
     assert reasons[gone].startswith("checkpoint not found (looked at: artifact checkpoint/model.ckpt")
-    assert reasons[fpfh].startswith("no trained model (method=fpfh")
+    (done,) = res["evaluated"]
+    assert done["run_id"] == icp and done["checkpoint"] is None
+    run = _client(store["uri"]).get_run(icp)
+    assert {f"{NAME}/3DMatch/rr", f"{NAME}/3DLoMatch/rr"} <= set(run.data.metrics)
+    assert run.data.tags[f"{NAME}.checkpoint"] == CLASSICAL_FROM
+    again = _tracked(["experiments=[main_results]", f"data.root={tiny_root}", f"name={NAME}"])
+    assert again["evaluated"] == [] and {s["run_id"] for s in again["skipped"]} == {gone, icp}
 
 
 def test_a_corrupt_checkpoint_is_named_before_work(store, tiny_root):

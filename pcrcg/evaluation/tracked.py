@@ -1,8 +1,9 @@
 """Tracked runs evaluated again on another data set: ``python -m pcrcg.evaluate mode=tracked``.
 
 Every FINISHED run of the named MLflow experiments that trained a model (``method=learned``, or
-``icp``/``color_icp`` with ``icp_init=learned``) is evaluated on the test benchmarks of another data root
-with the evaluation stage of a run (:func:`pcrcg.evaluation.stage.evaluate`), under the run's own logged
+``icp``/``color_icp`` with ``icp_init=learned``), and every run of a classical method (FPFH, ICP or
+ColorICP from the identity, the SIFT methods: no model, the same method on the other root), is evaluated
+on the test benchmarks of another data root with the evaluation stage of a run (:func:`pcrcg.evaluation.stage.evaluate`), under the run's own logged
 config (registration and protocol settings, every N, seed) with ``data.root`` replaced and
 ``eval.max_pairs`` null (every pair of the other root). The results go into the same run:
 
@@ -41,10 +42,12 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from urllib.parse import unquote, urlparse
 
 from pcrcg.data.layout import BENCHMARKS, Layout
+from pcrcg.config import CLASSICAL_METHODS as CLASSICAL
 from pcrcg.errors import ConfigError, DataError
 
 CONFIG_ARTIFACT = "config/config.yaml"
 CHECKPOINT_ARTIFACT = "checkpoint/model.ckpt"
+CLASSICAL_FROM = "none: a classical method, run again on the other root"
 SOURCE_FILE = "source.json"
 TAG_REUSED = "checkpoint_reused"
 TAG_REUSED_RUN = "checkpoint_run"
@@ -61,7 +64,7 @@ class Candidate:
     experiment: str
     run_name: str
     config: dict[str, Any]
-    checkpoint: Path
+    checkpoint: Path | None  # None: a classical method (no model)
     checkpoint_from: str
     n_views: int = 0
 
@@ -361,7 +364,18 @@ def plan(mlflow_client: Any, experiments: Mapping[str, str], *, name: str, root:
                 skip(source)
                 continue
             if not trains_model(config):
-                skip(f"no trained model (method={config.get('method')}, icp_init={config.get('icp_init')})")
+                method = str(config.get("method"))
+                if method not in CLASSICAL:
+                    skip(f"no trained model and no classical method (method={method}, "
+                         f"icp_init={config.get('icp_init')})")
+                    continue
+                n_views = int(config.get("views") or 0) if method.startswith("sift") else 0  # SIFT reads the views
+                key = tuple(run_benchmarks(config))
+                if key not in gts_cache:
+                    gts_cache[key] = check_layout(root, key)
+                if n_views:
+                    check_views(root, gts_cache[key], n_views)
+                out.candidates.append(Candidate(rid, exp_name, rname, config, None, CLASSICAL_FROM, n_views))
                 continue
             ckpt, found = find_checkpoint(mlflow_client, run, config, base_dir, tmp)
             if ckpt is None:
@@ -400,8 +414,9 @@ def evaluate_candidate(tracker: Any, cand: Candidate, *, name: str, root: Path, 
                           device=device, progress=progress)
         for path, folder in result["artifacts"]:
             tracker.log_artifact(cand.run_id, path, f"{name}/{folder}" if folder else name)
+    model = CLASSICAL_FROM if cand.checkpoint is None else f"{cand.checkpoint} ({cand.checkpoint_from})"
     tracker.set_tags(cand.run_id, {f"{name}.data_root": f"{root.resolve()} params_hash={params_hash}",
-                                   f"{name}.checkpoint": f"{cand.checkpoint} ({cand.checkpoint_from})",
+                                   f"{name}.checkpoint": model,
                                    f"{name}.code_version": code_version()})
     metrics = prefixed(result["metrics"], name)
     tracker.log_metrics(cand.run_id, metrics)
@@ -436,8 +451,9 @@ def run_tracked(cfg: Any, base_dir: Path | None = None, log: Callable[[str], Non
         log(f"[evaluate] {len(todo.candidates)} run(s) to evaluate on {root} as {name}/, {len(todo.skipped)} skipped")
         trackers: dict[str, RunTracker] = {}
         for k, cand in enumerate(todo.candidates, 1):
-            log(f"[evaluate] run {k}/{len(todo.candidates)}: {cand.run_id} ({cand.experiment}: {cand.run_name}), "
-                f"model {cand.checkpoint} ({cand.checkpoint_from})")
+            model = (f"method {cand.config.get('method')} ({CLASSICAL_FROM})" if cand.checkpoint is None
+                     else f"model {cand.checkpoint} ({cand.checkpoint_from})")
+            log(f"[evaluate] run {k}/{len(todo.candidates)}: {cand.run_id} ({cand.experiment}: {cand.run_name}), {model}")
             t0 = time.perf_counter()
             tracker = trackers.setdefault(cand.experiment, RunTracker(uri, cand.experiment))
             try:
@@ -455,7 +471,8 @@ def run_tracked(cfg: Any, base_dir: Path | None = None, log: Callable[[str], Non
             rr = ", ".join(f"{k2.split('/', 1)[1]}={v:.1f}" for k2, v in shown.items() if k2.endswith(head))
             log(f"[evaluate] done run {cand.run_id} in {seconds} s: {rr or 'logged'}")
             summary["evaluated"].append({"run_id": cand.run_id, "experiment": cand.experiment,
-                                         "run_name": cand.run_name, "checkpoint": str(cand.checkpoint),
+                                         "run_name": cand.run_name,
+                                         "checkpoint": None if cand.checkpoint is None else str(cand.checkpoint),
                                          "checkpoint_from": cand.checkpoint_from, "seconds": seconds,
                                          "metrics": json.loads(strict_json(shown))})
     return summary
