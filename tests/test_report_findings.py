@@ -195,9 +195,12 @@ def test_a_finding_without_runs_is_not_run_and_says_which_and_how(report):
 
 
 def test_a_row_reads_another_experiments_runs_of_the_same_config(report):
-    """Finding 2's deep/explicit row is main_results' PCR-CG (3 seeds); its implicit row the projection run."""
+    """Finding 2's deep/explicit row is main_results' PCR-CG (seeds 0-2); its implicit row the projection run
+    (seed 0). The line compares the seed both ran, seed 0 with seed 0: pooling the explicit row's seeds 1-2
+    against nothing would mix seed effects into the difference. Rows of the same seeds keep them all (claim 1)."""
     [line] = _lines(report, 2)
-    assert line.verdict == HOLDS and len(line.ours.row_runs) == 3 and len(line.ours.ref_runs) == 1
+    assert line.verdict == HOLDS and len(line.ours.row_runs) == 1 and len(line.ours.ref_runs) == 1
+    assert len(_lines(report, 1)[0].ours.row_runs) == 3
     assert line.reference.experiment == "projection" and line.compared.experiment == "main_results"
 
 
@@ -310,7 +313,8 @@ def test_the_identity_rule_picks_the_runs_and_the_findings_name_their_code(tmp_p
          {"label": "PCR-CG", "code_version": "B"}, _base(rng, SCENES, 0.9))
     result = generate_report(_cfg(tmp_path / "out", uri, identity=identity), base_dir=tmp_path)
     [line] = [ln for ln in result.findings.lines if ln.finding.number == 1 and ln.ours.at == 5000]
-    assert len(line.ours.row_runs) == n_runs and len(line.ours.ref_runs) == 2
+    # under config_and_code PCR-CG has seed 0 only, so Predator is compared on seed 0 too (seed with seed)
+    assert len(line.ours.row_runs) == n_runs and len(line.ours.ref_runs) == n_runs
     assert line.ours.n_seeds == (0 if n_runs == 1 else 2)  # a std only where both rows ran two or more seeds
     assert (" ± " in ours_text(line.ours)) == (n_runs == 2)
     md = (tmp_path / "out" / "findings.md").read_text()

@@ -345,7 +345,7 @@ def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list
 def intro(filled: FilledFindings) -> str:
     iv = next((ln.ours.interval for ln in filled.lines if ln.ours.interval is not None), None)
     how = (f"paired bootstrap {iv.level:.0%} interval over the test pairs ({iv.n_boot} resamples within each "
-           f"scene, seed {iv.seed}; seeds pooled per pair, as the tables' orderings)" if iv is not None else
+           f"scene, seed {iv.seed}; seeds pooled per pair, over the seeds both rows ran, as the tables' orderings)" if iv is not None else
            "paired bootstrap interval over the test pairs, as the tables' orderings")
     real = (f" The {filled.spec.real} columns: the same runs evaluated on the real scene "
             f"(`{filled.spec.real_command()}`); few pairs, wide intervals." if filled.spec.real else "")

@@ -12,7 +12,9 @@ have one place), one :class:`OrderingLine`:
 * the paired bootstrap interval (:mod:`pcrcg.report.stats`) over the test pairs, from the runs'
   per-pair outcomes (:mod:`pcrcg.report.outcomes`); for ``mean`` a pair's outcome is its mean
   over the sizes (the statistic is linear, so this is the mean over sizes of the recalls);
-  several seeds are pooled per pair;
+  several seeds are pooled per pair. Where the two rows share some seeds but not all, only the
+  shared seeds count (means and interval): seed is compared with seed, not one row's extra seeds
+  with nothing;
 * the verdict: ``holds`` (the interval excludes 0 on the paper's side), ``reversed`` (on the
   other side), ``within noise``, or no ordering to test (a tie or no numbers in the paper);
   ``None`` with a reason when there is no interval.
@@ -180,6 +182,13 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
         line.reason = _missing(ref_cells if not ref_runs else row_cells)
         line.verdict = verdict(line.paper_diff, None)
         return line
+    seeds_ref = {r.seed for r, _, _ in ref_runs.values()}
+    seeds_row = {r.seed for r, _, _ in row_runs.values()}
+    if seeds_ref & seeds_row and seeds_ref != seeds_row:  # compare seed with seed: the seeds both rows ran
+        both = seeds_ref & seeds_row
+        ref_runs = {k: v for k, v in ref_runs.items() if v[0].seed in both}
+        row_runs = {k: v for k, v in row_runs.items() if v[0].seed in both}
+        line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
     line.ours_ref = float(np.mean([v for _, v, _ in ref_runs.values()]))
     line.ours_row = float(np.mean([v for _, v, _ in row_runs.values()]))
     line.ours_diff = line.ours_row - line.ours_ref
