@@ -37,8 +37,7 @@ POINTS = {("a", 0): 300, ("a", 1): 300, ("b", 0): 80, ("b", 1): 80, ("c", 0): 15
 
 def test_the_table_counts_each_regime_and_follows_the_pairs_uniform_at_the_largest_n():
     rows = []
-    for n, reg_ab in ((200, (1, 0, 0)), (100, (1, 1, 0)), (50, (1, 1, 1))):
-        ra, rb, rc = reg_ab
+    for n, (rb, rc) in ((200, (0, 0)), (100, (1, 0)), (50, (1, 1))):  # pair a always registers
         rows += [("a", 0, 1, n, 1, 1), ("b", 0, 1, n, 1, rb), ("c", 0, 1, n, 1, rc), ("a", 1, 0, n, 0, 0)]
     t = regime_table(_pairs(rows), POINTS)
     assert list(t.columns) == list(COLUMNS)

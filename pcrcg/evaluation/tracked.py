@@ -3,7 +3,8 @@
 Every FINISHED run of the named MLflow experiments that trained a model (``method=learned``, or
 ``icp``/``color_icp`` with ``icp_init=learned``), and every run of a classical method (FPFH, ICP or
 ColorICP from the identity, the SIFT methods: no model, the same method on the other root), is evaluated
-on the test benchmarks of another data root with the evaluation stage of a run (:func:`pcrcg.evaluation.stage.evaluate`), under the run's own logged
+on the test benchmarks of another data root with the evaluation stage of a run
+(:func:`pcrcg.evaluation.stage.evaluate`), under the run's own logged
 config (registration and protocol settings, every N, seed) with ``data.root`` replaced and
 ``eval.max_pairs`` null (every pair of the other root). The results go into the same run:
 
@@ -41,8 +42,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 from urllib.parse import unquote, urlparse
 
-from pcrcg.data.layout import BENCHMARKS, Layout
 from pcrcg.config import CLASSICAL_METHODS as CLASSICAL
+from pcrcg.data.layout import BENCHMARKS, Layout
 from pcrcg.errors import ConfigError, DataError
 
 CONFIG_ARTIFACT = "config/config.yaml"
@@ -67,6 +68,13 @@ class Candidate:
     checkpoint: Path | None  # None: a classical method (no model)
     checkpoint_from: str
     n_views: int = 0
+
+    @property
+    def model(self) -> str:
+        """What is evaluated, for logs and tags: the model file and where it was found, or the classical method."""
+        if self.checkpoint is None:
+            return f"method {self.config.get('method')} ({CLASSICAL_FROM})"
+        return f"model {self.checkpoint} ({self.checkpoint_from})"
 
 
 @dataclass
@@ -363,25 +371,19 @@ def plan(mlflow_client: Any, experiments: Mapping[str, str], *, name: str, root:
             if config is None:
                 skip(source)
                 continue
-            if not trains_model(config):
-                method = str(config.get("method"))
-                if method not in CLASSICAL:
-                    skip(f"no trained model and no classical method (method={method}, "
-                         f"icp_init={config.get('icp_init')})")
+            method = str(config.get("method"))
+            if trains_model(config):
+                ckpt, found = find_checkpoint(mlflow_client, run, config, base_dir, tmp)
+                if ckpt is None:
+                    skip(found)
                     continue
-                n_views = int(config.get("views") or 0) if method.startswith("sift") else 0  # SIFT reads the views
-                key = tuple(run_benchmarks(config))
-                if key not in gts_cache:
-                    gts_cache[key] = check_layout(root, key)
-                if n_views:
-                    check_views(root, gts_cache[key], n_views)
-                out.candidates.append(Candidate(rid, exp_name, rname, config, None, CLASSICAL_FROM, n_views))
+                n_views = model_views(ckpt)
+            elif method in CLASSICAL:  # no model: the method runs again; SIFT reads the views
+                ckpt, found = None, CLASSICAL_FROM
+                n_views = int(config.get("views") or 0) if method.startswith("sift") else 0
+            else:
+                skip(f"no trained model and no classical method (method={method}, icp_init={config.get('icp_init')})")
                 continue
-            ckpt, found = find_checkpoint(mlflow_client, run, config, base_dir, tmp)
-            if ckpt is None:
-                skip(found)
-                continue
-            n_views = model_views(ckpt)
             key = tuple(run_benchmarks(config))
             if key not in gts_cache:
                 gts_cache[key] = check_layout(root, key)
@@ -451,9 +453,8 @@ def run_tracked(cfg: Any, base_dir: Path | None = None, log: Callable[[str], Non
         log(f"[evaluate] {len(todo.candidates)} run(s) to evaluate on {root} as {name}/, {len(todo.skipped)} skipped")
         trackers: dict[str, RunTracker] = {}
         for k, cand in enumerate(todo.candidates, 1):
-            model = (f"method {cand.config.get('method')} ({CLASSICAL_FROM})" if cand.checkpoint is None
-                     else f"model {cand.checkpoint} ({cand.checkpoint_from})")
-            log(f"[evaluate] run {k}/{len(todo.candidates)}: {cand.run_id} ({cand.experiment}: {cand.run_name}), {model}")
+            log(f"[evaluate] run {k}/{len(todo.candidates)}: {cand.run_id} ({cand.experiment}: {cand.run_name}), "
+                f"{cand.model}")
             t0 = time.perf_counter()
             tracker = trackers.setdefault(cand.experiment, RunTracker(uri, cand.experiment))
             try:

@@ -177,18 +177,15 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
     line = OrderingLine(comp, metric, bench, variant, at,
                         paper_ref=_mean([c.paper for c in ref_cells]), paper_row=_mean([c.paper for c in row_cells]))
     ref_runs, row_runs = _per_run(ref_cells), _per_run(row_cells)
+    both = {r.seed for r, _, _ in ref_runs.values()} & {r.seed for r, _, _ in row_runs.values()}
+    if both:  # compare seed with seed: only the seeds both rows ran
+        ref_runs = {k: v for k, v in ref_runs.items() if v[0].seed in both}
+        row_runs = {k: v for k, v in row_runs.items() if v[0].seed in both}
     line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
     if not ref_runs or not row_runs:
         line.reason = _missing(ref_cells if not ref_runs else row_cells)
         line.verdict = verdict(line.paper_diff, None)
         return line
-    seeds_ref = {r.seed for r, _, _ in ref_runs.values()}
-    seeds_row = {r.seed for r, _, _ in row_runs.values()}
-    if seeds_ref & seeds_row and seeds_ref != seeds_row:  # compare seed with seed: the seeds both rows ran
-        both = seeds_ref & seeds_row
-        ref_runs = {k: v for k, v in ref_runs.items() if v[0].seed in both}
-        row_runs = {k: v for k, v in row_runs.items() if v[0].seed in both}
-        line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
     line.ours_ref = float(np.mean([v for _, v, _ in ref_runs.values()]))
     line.ours_row = float(np.mean([v for _, v, _ in row_runs.values()]))
     line.ours_diff = line.ours_row - line.ours_ref
