@@ -313,6 +313,42 @@ def test_match_residuals_are_exact_on_known_geometry(pair):
     assert res["precision"] == 0.0 and res["precision_debiased"] == 1.0 and res["with_depth"] == len(e)
 
 
+def test_epipolar_distances_are_exact_on_known_geometry_and_reject_wrong_matches(pair):
+    """The depth-free precision: true matches lie on their epipolar lines (0 px); a match moved off its
+    line by 5 px measures 5 px in image b; shuffled matches fail both criteria."""
+    from pcrcg.benchmarks.matching import epipolar_distances, epipolar_precision
+    from pcrcg.geometry import backproject, project, transform_points
+
+    va, vb = pair.src_views[0], pair.tgt_views[0]
+    T_b_a = np.linalg.inv(vb.pose) @ pair.transform @ va.pose
+    pts, vu = backproject(va.depth, va.intrinsics, stride=7)
+    uv_b, _ = project(transform_points(T_b_a, pts), vb.intrinsics)
+    uv_a = vu[:, ::-1].astype(np.float64)
+    d = epipolar_distances(uv_a, uv_b, va.intrinsics, vb.intrinsics, T_b_a)
+    assert d.shape == (len(uv_a), 2) and np.nanmax(d) < 1e-6
+    f = float(vb.intrinsics[0, 0])
+    assert epipolar_precision([d], f) == {"precision_epi": 1.0, "precision_sg": 1.0, "median_epi_px": pytest.approx(0, abs=1e-6)}
+    # a stereo pair (b is a moved 0.1 m along x): epipolar lines are image rows; 5 px across a row is 5 px
+    # off its line in both images, any shift along the row is on it
+    K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+    T = np.eye(4)
+    T[0, 3] = -0.1
+    ua = np.array([[10.0, 20.0], [90.0, 50.0], [150.0, 110.0]])
+    assert np.allclose(epipolar_distances(ua, ua + [[0.0, 5.0]], K, K, T), 5.0)
+    assert np.allclose(epipolar_distances(ua, ua + [[-37.0, 0.0]], K, K, T), 0.0)
+    # SuperGlue's criterion: (5/100)^2 * 2 = 5e-3 > 5e-4 fails; 1 px: 2e-4 passes
+    assert epipolar_precision([epipolar_distances(ua, ua + [[0.0, 5.0]], K, K, T)], 100.0)["precision_sg"] == 0.0
+    assert epipolar_precision([epipolar_distances(ua, ua + [[0.0, 1.0]], K, K, T)], 100.0)["precision_sg"] == 1.0
+    shuffled = uv_b[np.random.default_rng(0).permutation(len(uv_b))]
+    bad = epipolar_precision([epipolar_distances(uv_a, shuffled, va.intrinsics, vb.intrinsics, T_b_a)], f)
+    assert bad["precision_epi"] < 0.3 and bad["precision_sg"] < 0.5
+    # no translation: no epipolar geometry, NaN rows, and no precision
+    T_rot = np.eye(4)
+    T_rot[:3, :3] = T_b_a[:3, :3]
+    assert np.isnan(epipolar_distances(uv_a, uv_b, va.intrinsics, vb.intrinsics, T_rot)).all()
+    assert np.isnan(epipolar_precision([np.full((3, 2), np.nan)], f)["precision_epi"])
+
+
 def test_a_methods_own_image_size_wins_over_the_benchmarks_grid():
     """``--methods "lightglue:image_size=null"`` matches at the native size (it silently used the grid)."""
     from pcrcg.benchmarks.matching import matcher_config
