@@ -168,6 +168,8 @@ def format_table(table: pd.DataFrame, title: str) -> str:
     """A markdown table of :func:`regime_table`'s rows under ``title``."""
     top = int(table["n_points"].max()) if len(table) else 0
     lines = [f"### {title}", "",
+             "RR: % of the counted pairs, pooled over scenes (the report's tables average the scenes' recalls, "
+             "so their figures differ).", "",
              "| N | pairs | by scores | mixed | uniform | RR | RR by scores | RR mixed | RR uniform "
              f"| RR of the pairs uniform at {top} |",
              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
