@@ -525,6 +525,7 @@ GROUP_RULES: dict[str, Any] = {
     "matcher2d.method": lambda k, v: _one_of(k, v, MATCHER_METHODS),
     "matcher2d.pairs": lambda k, v: _one_of(k, v, PAIR_MODES),
     "matcher2d.ratio": _fraction,
+    "matcher2d.oracle_px": lambda k, v: None if v is None else _positive(k, v),
     "trainer.max_epochs": lambda k, v: _int_at_least(k, v, 1),
     "trainer.max_steps": _optional_int_at_least(1),
     "trainer.limit_train_batches": _batches,

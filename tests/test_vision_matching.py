@@ -134,3 +134,44 @@ def test_cache_key_follows_files(pair, tmp_path):
     cache.match(a, b, cfg)
     cache.match(a.copy(), b.copy(), cfg)
     assert cache.misses == 3 and cache.hits == 2
+
+
+def test_oracle_keeps_the_matches_the_ground_truth_confirms(pair, tmp_path):
+    """matcher2d.oracle_px: true matches stay, a match moved 10 px and one without depth go; match_views
+    filters after the cache (which keeps every match); no ground truth, or a bad value, is a one-line error."""
+    from pcrcg.geometry import backproject
+    from pcrcg.vision.matching import oracle_filter
+
+    va, vb = pair.src_views[0], pair.tgt_views[0]
+    pts, vu = backproject(va.depth, va.intrinsics, stride=9)
+    T_b_a = invert(vb.pose) @ pair.transform @ va.pose
+    uv_b, _ = project(transform_points(T_b_a, pts), vb.intrinsics)
+    uv_a = vu[:, ::-1].astype(np.float64)
+    true = Matches(uv_a, uv_b, np.ones(len(uv_a)))
+    assert len(oracle_filter(true, va, vb, pair.transform, 3.0)) == len(true)
+    moved = Matches(uv_a, uv_b + [[10.0, 0.0]], np.ones(len(uv_a)))
+    assert len(oracle_filter(moved, va, vb, pair.transform, 3.0)) == 0
+    assert len(oracle_filter(moved, va, vb, pair.transform, 11.0)) == len(true)
+    holes = np.argwhere(va.depth == 0)
+    if len(holes):  # a pixel without depth cannot be confirmed
+        v, u = holes[0]
+        assert len(oracle_filter(Matches([[u, v]], uv_b[:1], [1.0]), va, vb, pair.transform, 1e6)) == 0
+
+    cache = MatchCache(tmp_path / "m")
+    every = match_views(pair.src_views, pair.tgt_views, MatcherConfig(), cache, pair.transform)
+    kept = match_views(pair.src_views, pair.tgt_views, MatcherConfig(oracle_px=1.0), cache, pair.transform)
+    assert kept.keys() == every.keys() and cache.hits == len(every)  # the same dumps, read back
+    for k, m in kept.items():
+        assert 0 < len(m) <= len(every[k]) and np.all(reprojection_error(pair, k[0], m) < 1.0 + 1e-3)
+    assert sum(map(len, kept.values())) < sum(map(len, every.values()))  # SIFT's 3 px RANSAC lets some 1-3 px through
+    with pytest.raises(ConfigError) as e:
+        match_views(pair.src_views, pair.tgt_views, MatcherConfig(oracle_px=3.0))
+    assert e.value.setting == "matcher2d.oracle_px"
+    for bad in (0, -2.0, True):
+        with pytest.raises(ConfigError):
+            MatcherConfig(oracle_px=bad)
+    from pcrcg.config import load_run_config
+
+    with pytest.raises(ConfigError, match="matcher2d.oracle_px"):  # caught when the run's config is read
+        load_run_config(["profile=tiny", "features=deep", "projection=explicit", "matcher2d.oracle_px=0"])
+    assert load_run_config(["profile=tiny"]).matcher2d.oracle_px is None  # the default: every match

@@ -61,24 +61,10 @@ KINECT_RGB_FOCAL = 525.0
 
 def match_residuals(uv_a: np.ndarray, uv_b: np.ndarray, depth_a: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                     T_b_a: np.ndarray) -> np.ndarray:
-    """Reprojection residual (K, 2) (pixels of image b, reprojection minus ``uv_b``) of matches
-    uv_a (K, 2) -> uv_b (K, 2).
+    """:func:`pcrcg.vision.matching.reprojection_residuals` (K, 2) (the oracle filter's measure too)."""
+    from pcrcg.vision.matching import reprojection_residuals
 
-    ``uv_a`` is lifted with the depth of its nearest pixel of ``depth_a`` (H, W, metres, 0 = none)
-    through ``K_a``, moved by ``T_b_a`` (4x4, camera a -> camera b) and projected with ``K_b``.
-    NaN rows where ``uv_a`` has no depth or lands behind camera b.
-    """
-    from pcrcg.geometry import project, transform_points
-
-    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
-    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
-    h, w = depth_a.shape
-    u = np.clip(np.rint(uv_a[:, 0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(uv_a[:, 1]).astype(int), 0, h - 1)
-    d = depth_a[v, u].astype(np.float64)
-    pc = np.stack([(uv_a[:, 0] - K_a[0, 2]) * d / K_a[0, 0], (uv_a[:, 1] - K_a[1, 2]) * d / K_a[1, 1], d], 1)
-    uv, z = project(transform_points(np.asarray(T_b_a, np.float64), pc), np.asarray(K_b, np.float64))
-    return np.where(((d > 0) & (z > 1e-6))[:, None], uv - uv_b, np.nan)
+    return reprojection_residuals(uv_a, uv_b, depth_a, K_a, K_b, T_b_a)
 
 
 def match_errors(*args: Any) -> np.ndarray:

