@@ -99,10 +99,11 @@ def test_deep_maps_are_memoised_in_eval_mode_and_recomputed_when_the_weights_cha
     with torch.no_grad():
         ext(views[1:3])
     assert len(ext._deep_memo) == 2
-    # gradients on, or training mode: the encoder runs every time
+    # gradients on, or training mode: the encoder runs every time (and training mode frees the memo)
     batches.clear()
     ext(views[:2])
     ext.train()
+    assert not ext._deep_memo
     with torch.no_grad():
         ext(views[:2])
     assert batches == [2, 2]

@@ -124,6 +124,14 @@ class FeatureExtractor(nn.Module):
     def out_dim(self) -> int:
         return self.dim
 
+    def train(self, mode: bool = True) -> "FeatureExtractor":
+        """Training mode also forgets the memoised deep maps (training changes the weights they came from,
+        and the memory is better spent there)."""
+        if mode:
+            self._deep_memo.clear()
+            self._deep_state = ()
+        return super().train(mode)
+
     def _memo_key(self, view: Any) -> tuple:
         return (self.kind, getattr(view, "color_path", None) or id(view.color), view.color.shape,
                 int(view.color[::7, ::7].sum()))
