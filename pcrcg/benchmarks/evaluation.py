@@ -3,11 +3,12 @@
     python -m pcrcg.benchmarks.evaluation CHECKPOINT [--root data/synthmatch-cpu] [--pairs 10]
         [--distance 0.12]
 
-For a model with deep 2D features, inference first: seconds per pair with the 2D encoder run on every pair's
-views (before) and with each view's map computed once and reused (after,
-:meth:`pcrcg.vision.features.FeatureExtractor.frozen_maps`), and whether the outputs are identical. Then, per
-N of the protocol, seconds per pair of registration (sampling, matching, RANSAC) on a trained model's outputs for ``--pairs`` pairs of each test benchmark, with the run's default budget (Open3D
-0.10's ``(50000, 1000)``) and with ``registration=early_exit``:
+For a model with deep 2D features, inference first: seconds per pair with the 2D encoder run on every
+pair's views (before) and with each view's map computed once and reused (after,
+:meth:`pcrcg.vision.features.FeatureExtractor.frozen_maps`), and whether the outputs are identical. Then,
+per N of the protocol, seconds per pair of registration (sampling, matching, RANSAC) on a trained model's
+outputs for ``--pairs`` pairs of each test benchmark, with the run's default budget (Open3D 0.10's
+``(50000, 1000)``) and with ``registration=early_exit``:
 
 * **before**: every sampled row matched (no ``src_ids``/``tgt_ids``) in blocks of 4,096 rows and
   ``RansacConfig(prune=False)``
@@ -46,7 +47,6 @@ def main(argv: list[str] | None = None) -> None:
     from pcrcg.models.predict import predict_benchmark
     from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
     from pcrcg.registration.ransac import RansacConfig
-
     from pcrcg.models.train import load_module
     from pcrcg.vision import features
 

@@ -47,6 +47,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+# the reprojection residual (K, 2) of matches has one home, shared with matcher2d.oracle_px
+from pcrcg.vision.matching import reprojection_residuals as match_residuals
+
 REPO = Path(__file__).resolve().parents[2]
 REAL_DEFAULT = REPO.parent / "shared" / "data" / "real-rgbd" / "7-scenes-redkitchen" / "seq-01"
 PRECISION_PX = 3.0
@@ -57,14 +60,6 @@ KINECT_RGB_FOCAL = 525.0
 
 
 # --------------------------------------------------------------------------- pure functions
-
-
-def match_residuals(uv_a: np.ndarray, uv_b: np.ndarray, depth_a: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
-                    T_b_a: np.ndarray) -> np.ndarray:
-    """:func:`pcrcg.vision.matching.reprojection_residuals` (K, 2) (the oracle filter's measure too)."""
-    from pcrcg.vision.matching import reprojection_residuals
-
-    return reprojection_residuals(uv_a, uv_b, depth_a, K_a, K_b, T_b_a)
 
 
 def match_errors(*args: Any) -> np.ndarray:

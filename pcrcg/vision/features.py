@@ -187,8 +187,8 @@ class FeatureExtractor(nn.Module):
     def frozen_maps(self, views: Sequence[Any], device: torch.device | str) -> list[torch.Tensor]:
         """``kind=deep`` maps in eval mode without gradients, where a view's map is a function of its
         image and the weights alone: memoised per view (the most recent, up to :data:`DEEP_MEMO_BYTES`;
-        forgotten when the weights change), the missing ones computed in one batch. A lone miss is batched with a view
-        already computed: oneDNN's single-image convolutions differ from batched ones in the last bit,
+        forgotten when the weights change), the missing ones computed in one batch. A lone miss is batched
+        with a view already computed: oneDNN's single-image convolutions differ from batched ones in the last bit,
         while any batch of two or more gives each image the same map, so the maps are those of one
         batched call over all the views."""
         state = (self._encoder_state(), str(device))
@@ -201,8 +201,7 @@ class FeatureExtractor(nn.Module):
         if miss:
             first = {k: i for i, k in reversed(list(enumerate(keys)))}
             idx = [first[k] for k in miss]
-            pad = len(idx) == 1
-            if pad:  # the lone miss beside another view (or itself) of this call
+            if len(idx) == 1:  # the lone miss beside another view (or itself) of this call
                 idx.append(next((i for i in range(len(views)) if keys[i] != miss[0]), idx[0]))
             maps = self._encode([views[i] for i in idx], device)
             for k, m in zip(miss, maps):
