@@ -44,6 +44,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.errors import ConfigError, DataError, PcrcgError
+from pcrcg.evaluation.pairs import OWN_ESTIMATES
 
 MODES = ("score", "pair", "benchmark", "tracked")
 
@@ -316,7 +317,7 @@ def learned_table(summary: dict[str, Any], n_points: list[int]) -> str:
     for b, m in summary["benchmarks"].items():
         lines.append(f"{b}: {int(m.get('n_pairs', 0))} pairs, {int(m.get('n_counted', 0))} counted in RR")
         lines.append(f"  {'N':>5} {'RR':>6} {'FMR':>6} {'IR':>6} {'RRE':>6} {'RTE':>6}")
-        own = [k for k in ("lgr", "lgr_ransac") if f"rr_{k}" in m]  # the model's own registration (GeoTransformer)
+        own = [k for k in OWN_ESTIMATES if f"rr_{k}" in m]  # the model's own registration (GeoTransformer)
         for n in [*n_points, *own]:
             v = [m.get(f"{k}_{n}", float("nan")) for k in ("rr", "fmr", "ir", "rre", "rte")]
             v = [float("nan") if x is None else x for x in v]
@@ -351,7 +352,7 @@ def run_benchmark(cfg: DictConfig) -> dict[str, Any]:
     out = {"method": summary["method"], "out_dir": str(cfg.out_dir), "metrics": str(Path(str(cfg.out_dir)) / "metrics.json")}
     if method == "learned":
         print(learned_table(summary, list(rcfg.n_points)))
-        keys = [f"{k}_{n}" for n in (*rcfg.n_points, "lgr", "lgr_ransac") for k in ("rr", "fmr", "ir")]
+        keys = [f"{k}_{n}" for n in (*rcfg.n_points, *OWN_ESTIMATES) for k in ("rr", "fmr", "ir")]
         keys += ["rre_lgr", "rte_lgr", "rre", "rte", "n_pairs", "n_counted"]
         out["checkpoint"] = str(ckpt)
         # NaN (e.g. RRE without a registered pair) as null: the last line stays strict JSON

@@ -250,6 +250,78 @@ def test_evaluate_model_outputs_writes_the_per_pair_inlier_ratios(tmp_path):
     assert 100 * df["registered"].mean() == pytest.approx(m["rr_500"])
 
 
+def test_own_estimates_are_scored_beside_the_n_and_recomputed_for_older_files(tmp_path):
+    """GeoTransformer's LGR (``estimates/<b>/lgr``): rows with ``estimate`` = lgr and no N; a pairs file
+    written before the column (no LGR rows) is completed from the est.log files, on the run's own data
+    and on another data set named by its ``<prefix>.data_root`` tag."""
+    from pcrcg.report.outcomes import OutcomeSource, parse_key
+    from pcrcg.report.sampling import regime_table
+    from pcrcg.tracking.store import ensure_store
+    from pcrcg.tracking.tracker import RunTracker
+
+    rng = np.random.default_rng(8)
+    gt = _scene_gts(rng)
+    _write_gt(tmp_path / "data" / "bench", "3DLoMatch", gt)
+    _write_gt(tmp_path / "real", "3DLoMatch", gt)
+    est_dir = tmp_path / "run" / "estimates" / "3DLoMatch"
+    ok = {k: {s: rng.random(len(g.pairs)) < p for s, g in gt.items()}
+          for k, p in (("5000", 0.2), ("lgr", 0.6), ("lgr_ransac", 0.4))}
+    for k, o in ok.items():
+        est = _estimates(gt, o)
+        for s, g in gt.items():
+            write_estimates(est_dir / k / s / "est.log", g, est[s])
+            write_estimates(tmp_path / "real-est" / "3DLoMatch" / k / s / "est.log", g, est[s])
+    rr = {k: score_benchmark(gt, _estimates(gt, o)).rr for k, o in ok.items()}
+    assert len({round(v, 6) for v in rr.values()}) == 3
+    rows = pd.DataFrame(rows_from_estimate_dir(gt, est_dir))
+    assert rows.groupby("estimate", sort=True).size().to_dict() == {"": 90, "lgr": 90, "lgr_ransac": 90}
+    assert (rows.loc[rows["estimate"] != "", "n_points"] == "").all() and (rows.loc[rows["estimate"] == "", "n_points"] == 5000).all()
+    assert [r["estimate"] for r in rows_from_estimate_dir(gt, est_dir, only="lgr")] == ["lgr"] * 90
+    assert rows_from_estimate_dir(gt, est_dir / "5000", only="lgr") == []
+    assert parse_key("3DMatch/rr_lgr_ransac") == ("3DMatch", "RR", "lgr_ransac") and parse_key("3DMatch/rr_lgrx") is None
+
+    # the sample-size table ignores the rows without N
+    new = pair_artifacts(tmp_path / "new", {"3DLoMatch": gt}, [(est_dir, "estimates/3DLoMatch")])[0][0] / "3DLoMatch.csv"
+    points = {(s, i): 20000 for s, g in gt.items() for i in range(10)}
+    assert regime_table(pd.read_csv(new, dtype={"scene": str}), points)["n_points"].tolist() == [5000]
+    # an older pairs file: no estimate column, no LGR rows
+    old = tmp_path / "old" / "pairs"
+    old.mkdir(parents=True)
+    df = pd.read_csv(new, dtype={"scene": str})
+    df[df["estimate"].isna()].drop(columns=["estimate"]).to_csv(old / "3DLoMatch.csv", index=False)
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    ensure_store(uri)
+    tr = RunTracker(uri, "geotransformer")
+    ids = {}
+    for name, pairs_dir in (("new", new.parent), ("old", old)):
+        rid = tr.start(name, {"experiment": "geotransformer", "profile": "cpu",
+                              "real.data_root": f"{tmp_path / 'real'} params_hash=abc"})
+        tr.log_params(rid, {"data.root": "data/bench", "eval.predator_variant": False, "eval.rmse_threshold": 0.2,
+                            "eval.max_pairs": "null"})
+        tr.log_artifact(rid, est_dir, "estimates/3DLoMatch")
+        tr.log_artifact(rid, pairs_dir, "pairs")
+        tr.log_artifact(rid, tmp_path / "real-est" / "3DLoMatch", "real/estimates/3DLoMatch")
+        tr.finish(rid)
+        ids[name] = rid
+    from pcrcg.report.load import load_runs
+
+    runs = load_runs(uri, ["geotransformer"])
+    with OutcomeSource(uri, tmp_path, runs) as src:
+        for name, rid in ids.items():
+            for k in ("5000", "lgr", "lgr_ransac"):
+                o = src.outcomes(rid, f"3DLoMatch/rr_{k}", rr[k])
+                assert o.values is not None and len(o.values) == 72, (name, k, o.reason)
+                assert recall(o.values.to_numpy(), o.values.index.get_level_values("scene")) == pytest.approx(rr[k])
+                want = "recomputed from the run's estimates/3DLoMatch/" if (name, k[:3]) == ("old", "lgr") else "the run's pairs"
+                assert o.source.startswith(want), (name, k, o.source)
+            real = src.outcomes(rid, "real/3DLoMatch/rr_lgr", rr["lgr"])
+            assert real.values is not None and str(tmp_path / "real") in real.source
+            assert "logged no per-pair outcomes on real" in src.outcomes(rid, "real/3DLoMatch/rr_5000", rr["5000"]).reason
+            wrong = src.outcomes(rid, "3DLoMatch/rr_lgr", rr["lgr"] + 1.0)
+            assert wrong.values is None and "the run logged" in wrong.reason
+
+
 # --------------------------------------------------------------------------- a real run through the pipeline
 
 
@@ -437,7 +509,7 @@ def test_pcrcg_above_predator_holds_on_3dlomatch_and_is_noise_on_3dmatch(report)
 def test_window_sizes_hold_reverse_and_recompute_older_runs(report):
     same = _line(report, "window_size", "PCR-CG 7x7 − PCR-CG 3x3", "3DLoMatch RR 5000")
     assert same.verdict == NOISE and same.interval.diff == 0.0
-    assert same.source.startswith("the run's pairs artifact; recomputed from the run's est.log files")
+    assert same.source.startswith("the run's pairs artifact; recomputed from the run's estimates/3DLoMatch est.log files")
     assert _line(report, "window_size", "PCR-CG 11x11 − PCR-CG 7x7", "3DLoMatch RR 5000").verdict == HOLDS
     rev = _line(report, "window_size", "PCR-CG 17x17 − PCR-CG 11x11", "3DLoMatch RR mean over N")
     assert rev.verdict == REVERSED and rev.interval.lo > 0 and rev.paper_diff < 0

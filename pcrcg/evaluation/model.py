@@ -53,11 +53,6 @@ def subset(gt: Mapping[str, SceneGT], keys: Mapping[str, set[tuple[int, int]]]) 
     return out
 
 
-# a model's own registration (PairOutput.estimate, GeoTransformer's LGR), scored beside the N of Predator's
-# protocol as "N": its estimate (lgr) and the configured RANSAC on its point pairs (lgr_ransac)
-OWN_ESTIMATES = ("lgr", "lgr_ransac")
-
-
 def own_estimates(out: Any, T_gt: np.ndarray, cfg: RegistrationConfig, seed: np.random.SeedSequence,
                   inlier_distance: float) -> dict[str, tuple[np.ndarray, float]]:
     """``{"lgr": (4x4, inlier ratio), "lgr_ransac": ...}`` for an output with ``estimate`` and
@@ -171,7 +166,7 @@ def evaluate_model_outputs(
     gt = benchmark if isinstance(benchmark, Mapping) else load_benchmark(benchmark)
     lookup = {(s, p.i, p.j): (g, k) for s, g in gt.items() for k, p in enumerate(g.pairs)}
     ns = list(cfg.n_points)
-    acc = _Estimates(list(ns))  # the model's own estimates (OWN_ESTIMATES), when it gives them, are added after
+    acc = _Estimates(list(ns))  # the model's own estimates (pairs.OWN_ESTIMATES), when it gives them, are added after
     seen: dict[str, set[tuple[int, int]]] = defaultdict(set)
     coverage: list[float] = []
     n_done = 0

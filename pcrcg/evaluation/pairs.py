@@ -3,10 +3,14 @@
 What the benchmark metrics summarise, kept pair by pair so that the report can compare two
 methods on the same test pairs (a paired bootstrap, :mod:`pcrcg.report.stats`)::
 
-    scene,i,j,n_points,counted,present,registered,error,rre,rte,inlier_ratio
+    scene,i,j,n_points,counted,present,registered,error,rre,rte,inlier_ratio,estimate
 
 * ``n_points``: the sample size N of a learned model's estimates (``<est_dir>/<N>/<scene>/est.log``);
-  empty for a classical method (``<est_dir>/<scene>/est.log``).
+  empty for a classical method (``<est_dir>/<scene>/est.log``) and for a model's own estimates.
+* ``estimate``: which of a model's own estimates the row scores (:data:`OWN_ESTIMATES`,
+  ``<est_dir>/lgr/<scene>/est.log``: GeoTransformer's LGR, and RANSAC on its point pairs); empty
+  for the N of Predator's protocol and for a classical method. Files written before this column
+  existed lack it: read them with an empty ``estimate``.
 * ``counted`` (0/1): the pair counts in the registration recall (``counted_mask``: not adjacent,
   and Predator's variant when configured); ``present``: an estimate exists; ``registered``:
   present and ``error <= rmse_threshold**2``; ``error``, ``rre`` (deg), ``rte`` (m): from
@@ -36,7 +40,10 @@ from pcrcg.evaluation.metrics import RMSE_THRESHOLD, SceneGT, load_estimates, sc
 log = logging.getLogger(__name__)
 
 PAIR_COLUMNS = ("scene", "i", "j", "n_points", "counted", "present", "registered", "error", "rre", "rte",
-                "inlier_ratio")
+                "inlier_ratio", "estimate")
+# a model's own registration (PairOutput.estimate, GeoTransformer's LGR), scored beside the N of Predator's
+# protocol as "N": its estimate (lgr) and the configured RANSAC on its point pairs (lgr_ransac)
+OWN_ESTIMATES = ("lgr", "lgr_ransac")
 INLIER_RATIO_FILE = "inlier_ratios.txt"
 PAIRS_FOLDER = "pairs"
 
@@ -74,12 +81,16 @@ def pair_rows(
     estimates: Mapping[str, Mapping[tuple[int, int], np.ndarray]],
     n_points: int | None = None,
     *,
+    estimate: str = "",
     predator_variant: bool = False,
     threshold: float = RMSE_THRESHOLD,
     inlier_ratios: Mapping[str, Mapping[tuple[int, int], float]] | None = None,
     only_present: bool = False,
 ) -> list[dict[str, Any]]:
     """One row (``PAIR_COLUMNS``) per ``gt.log`` pair, scored with :func:`score_scene`.
+
+    ``n_points``: the N of the estimates; ``estimate``: or which own estimate they are (one of
+    :data:`OWN_ESTIMATES`, with ``n_points`` None).
 
     ``only_present``: leave out pairs without an estimate (a ``max_pairs`` subset, which the
     metrics score alone); otherwise such a pair is a counted failure, as in the metrics.
@@ -96,16 +107,22 @@ def pair_rows(
                 "scene": s, "i": p.i, "j": p.j, "n_points": "" if n_points is None else int(n_points),
                 "counted": int(sc.counted[k]), "present": int(sc.present[k]), "registered": int(sc.success[k]),
                 "error": _num(sc.error[k]), "rre": _num(sc.rre[k]), "rte": _num(sc.rte[k]),
-                "inlier_ratio": _num(irs[(p.i, p.j)]) if (p.i, p.j) in irs else "",
+                "inlier_ratio": _num(irs[(p.i, p.j)]) if (p.i, p.j) in irs else "", "estimate": estimate,
             })
     return rows
 
 
-def _size_dirs(est_dir: Path) -> list[tuple[int | None, Path]]:
-    """``[(N, folder)]``: the ``<N>/`` folders of a learned model's estimates, else ``[(None, est_dir)]``."""
-    sizes = [(int(d.name), d) for d in est_dir.iterdir()
-             if d.is_dir() and d.name.isdigit() and not (d / "est.log").is_file()]  # not a scene folder
-    return sorted(sizes, key=lambda t: -t[0]) if sizes else [(None, est_dir)]
+def estimate_dirs(est_dir: str | os.PathLike, only: str | None = None) -> list[tuple[int | None, str, Path]]:
+    """``[(N, own estimate, folder)]`` of an estimate folder: a learned model's ``<N>/`` folders (largest N
+    first, own estimate ``""``) and its ``lgr/``, ``lgr_ransac/`` ones (N None); a classical method's
+    ``[(None, "", est_dir)]``. ``only``: just that own estimate's folder (``[]`` if absent)."""
+    est_dir = Path(est_dir)
+    subs = [d for d in est_dir.iterdir() if d.is_dir() and not (d / "est.log").is_file()]  # not scene folders
+    sizes = sorted(((int(d.name), "", d) for d in subs if d.name.isdigit()), key=lambda t: -t[0])
+    own = [(None, d.name, d) for name in OWN_ESTIMATES for d in subs if d.name == name]
+    if only is not None:
+        return [t for t in own if t[1] == only]
+    return sizes + own if sizes or own else [(None, "", est_dir)]
 
 
 def rows_from_estimate_dir(
@@ -115,17 +132,20 @@ def rows_from_estimate_dir(
     predator_variant: bool = False,
     threshold: float = RMSE_THRESHOLD,
     only_present: bool = False,
+    only: str | None = None,
 ) -> list[dict[str, Any]]:
-    """Per-pair rows of every N of an estimate folder (``<N>/<scene>/est.log`` or ``<scene>/est.log``).
+    """Per-pair rows of every N and own estimate of an estimate folder (``<N>/<scene>/est.log``,
+    ``lgr/<scene>/est.log`` or ``<scene>/est.log``; ``only``: just that own estimate, see
+    :func:`estimate_dirs`).
 
     A scene without ``est.log`` fails all its pairs, as in :func:`score_directories`.
     """
     rows: list[dict[str, Any]] = []
-    for n, d in _size_dirs(Path(est_dir)):
+    for n, own, d in estimate_dirs(est_dir, only):
         est, _ = load_estimates(d, gt.keys())
         irs = {s: read_inlier_ratios(d / s / INLIER_RATIO_FILE) for s in gt if (d / s / INLIER_RATIO_FILE).is_file()}
-        rows += pair_rows(gt, est, n, predator_variant=predator_variant, threshold=threshold, inlier_ratios=irs,
-                          only_present=only_present)
+        rows += pair_rows(gt, est, n, estimate=own, predator_variant=predator_variant, threshold=threshold,
+                          inlier_ratios=irs, only_present=only_present)
     return rows
 
 

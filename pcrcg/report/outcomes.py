@@ -10,6 +10,10 @@ Where they come from, per run and benchmark, in this order:
 2. for runs logged before that file existed: recomputed with the same code from the run's
    ``estimates/<benchmark>`` artifacts (``est.log`` files) and the benchmark's ``gt.log`` /
    ``gt.info`` under the run's ``data.root`` (relative to the folder the report starts in);
+   likewise a model's own estimate (``<b>/rr_lgr``, ``rr_lgr_ransac``: GeoTransformer's LGR) that the
+   run's pairs file lacks (files written before the ``estimate`` column), from
+   ``[<prefix>/]estimates/<b>/lgr/`` and the gt files under ``data.root`` or, for a prefix, the root
+   named by the run's ``<prefix>.data_root`` tag (written by ``mode=tracked``);
 3. otherwise nothing, with the reason.
 
 Every outcome vector is checked against the metric the run logged (the scene-averaged mean of
@@ -36,7 +40,7 @@ from pcrcg.report.stats import recall
 # logged metric value vs. the recall recomputed from the per-pair outcomes (percentage points)
 TOLERANCE = 1e-6
 FMR_THRESHOLD = 0.05
-_KEY = re.compile(r"^(?P<bench>[^/]+)/(?P<metric>rr|fmr)(?:_(?P<n>\d+))?$")
+_KEY = re.compile(r"^(?P<bench>[^/]+)/(?P<metric>rr|fmr)(?:_(?P<n>\d+|lgr|lgr_ransac))?$")
 
 
 @dataclass
@@ -48,12 +52,14 @@ class Outcomes:
     reason: str | None = None
 
 
-def parse_key(key: str) -> tuple[str, str, int | None] | None:
-    """``3DLoMatch/rr_1000`` -> (``3DLoMatch``, ``RR``, 1000); ``3DMatch/rr`` -> (..., None); else None."""
+def parse_key(key: str) -> tuple[str, str, int | str | None] | None:
+    """``3DLoMatch/rr_1000`` -> (``3DLoMatch``, ``RR``, 1000); ``3DMatch/rr`` -> (..., None);
+    ``3DMatch/rr_lgr`` -> (..., ``"lgr"``: a model's own estimate, ``OWN_ESTIMATES``); else None."""
     m = _KEY.match(key or "")
     if not m:
         return None
-    return m["bench"], m["metric"].upper(), int(m["n"]) if m["n"] else None
+    n = m["n"]
+    return m["bench"], m["metric"].upper(), (int(n) if n.isdigit() else n) if n else None
 
 
 def split_prefix(key: str) -> tuple[str | None, str]:
@@ -111,9 +117,9 @@ class OutcomeSource:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _param(self, run_id: str, key: str, default: Any = None) -> Any:
+    def _param(self, run_id: str, key: str, default: Any = None, kind: str = "params") -> Any:
         rec = self.params.get(run_id)
-        v = None if rec is None else rec.get(f"params.{key}")
+        v = None if rec is None else rec.get(f"{kind}.{key}")
         return default if v is None or (isinstance(v, float) and math.isnan(v)) else v
 
     def _listed(self, run_id: str, path: str) -> list[str]:
@@ -136,12 +142,15 @@ class OutcomeSource:
                 os.environ[key] = old
 
     # ------------------------------------------------------------------ per-pair table of a run
-    def frame(self, run_id: str, benchmark: str, prefix: str | None = None) -> tuple[pd.DataFrame | None, str]:
-        """(per-pair rows of ``[<prefix>/]pairs/<benchmark>.csv``, where they came from) or (None, why not)."""
-        key = (run_id, prefix or "", benchmark)
+    def frame(self, run_id: str, benchmark: str, prefix: str | None = None,
+              own: str | None = None) -> tuple[pd.DataFrame | None, str]:
+        """(per-pair rows of ``[<prefix>/]pairs/<benchmark>.csv``, where they came from) or (None, why not);
+        ``own`` (``lgr``, ``lgr_ransac``): the rows of that own estimate recomputed from its est.log files."""
+        key = (run_id, prefix or "", benchmark, own or "")
         if key not in self._frames:
             try:
-                self._frames[key] = self._load(run_id, benchmark, prefix)
+                self._frames[key] = (self._recompute(run_id, benchmark, prefix, own) if own
+                                     else self._load(run_id, benchmark, prefix))
             except Exception as e:  # noqa: BLE001 - reported in the table, never fatal
                 self._frames[key] = (None, f"per-pair outcomes of run {run_id[:8]} unreadable "
                                            f"({type(e).__name__}: {e})")
@@ -155,35 +164,57 @@ class OutcomeSource:
         if prefix:
             return None, (f"run {run_id[:8]} logged no per-pair outcomes on {prefix} ({name}); evaluate it "
                           f"again with python -m pcrcg.evaluate mode=tracked ... name={prefix}")
-        est = f"estimates/{benchmark}"
-        if not self._listed(run_id, est):
+        return self._recompute(run_id, benchmark)
+
+    def _data_root(self, run_id: str, prefix: str | None) -> tuple[Path | None, str]:
+        """The data set whose gt files score the run's estimates: ``data.root`` (its own) or the root of
+        the ``<prefix>.data_root`` tag (``<root> params_hash=<hash>``); (None, why not) otherwise."""
+        if prefix:
+            tag = self._param(run_id, f"{prefix}.data_root", kind="tags")
+            if tag is None:
+                return None, f"run {run_id[:8]} has no {prefix}.data_root tag to find the benchmark's gt files"
+            root = str(tag).split(" params_hash=", 1)[0].strip()
+        else:
+            root = self._param(run_id, "data.root")
+            if root is None:
+                return None, f"run {run_id[:8]} has est.log files but no data.root param to find the benchmark's gt files"
+        path = Path(str(root))
+        return (path if path.is_absolute() else self.base / path), ""
+
+    def _recompute(self, run_id: str, benchmark: str, prefix: str | None = None,
+                   own: str | None = None) -> tuple[pd.DataFrame | None, str]:
+        """Per-pair rows scored from the run's ``[<prefix>/]estimates/<benchmark>[/<own>]`` est.log files."""
+        est = f"{prefix}/estimates/{benchmark}" if prefix else f"estimates/{benchmark}"
+        listed = self._listed(run_id, est)
+        what = f"{est}/{own}" if own else est
+        if not listed or (own and what not in listed):
+            name = pairs_artifact(benchmark, prefix)
             return None, (f"run {run_id[:8]} logged neither per-pair outcomes ({name}) nor est.log files "
-                          f"({est}/); rerun it to get an interval")
-        root = self._param(run_id, "data.root")
+                          f"({what}/); rerun it to get an interval")
+        root, why = self._data_root(run_id, prefix)
         if root is None:
-            return None, f"run {run_id[:8]} has est.log files but no data.root param to find the benchmark's gt files"
+            return None, why
         from pcrcg.data.layout import Layout
 
-        root = Path(str(root))
-        bench_dir = Layout(root if root.is_absolute() else self.base / root).benchmark_dir(benchmark)
+        bench_dir = Layout(root).benchmark_dir(benchmark)
         if not bench_dir.is_dir():
             return None, (f"run {run_id[:8]} predates the per-pair file and its benchmark files ({bench_dir}) "
                           f"are not here to recompute it from its est.log files")
         from pcrcg.evaluation.metrics import load_benchmark
-        from pcrcg.evaluation.pairs import rows_from_estimate_dir
+        from pcrcg.evaluation.pairs import PAIR_COLUMNS, rows_from_estimate_dir
 
         gt = load_benchmark(bench_dir)
+        local = self._download(run_id, what)
         max_pairs = str(self._param(run_id, "eval.max_pairs", "null")).strip().lower()
         rows = rows_from_estimate_dir(
-            gt, self._download(run_id, est),
+            gt, local.parent if own else local,
             predator_variant=_flag(self._param(run_id, "eval.predator_variant", False)),
             threshold=float(self._param(run_id, "eval.rmse_threshold", 0.2)),
             only_present=max_pairs not in ("null", "none", ""),
+            only=own,
         )
-        from pcrcg.evaluation.pairs import PAIR_COLUMNS
-
         df = pd.DataFrame(rows, columns=list(PAIR_COLUMNS))
-        return _typed(df), f"recomputed from the run's est.log files and {bench_dir}"
+        return _typed(df), f"recomputed from the run's {what} est.log files and {bench_dir}"
 
     # ------------------------------------------------------------------ outcome vectors
     def outcomes(self, run_id: str, metric_key: str, logged: float | None) -> Outcomes:
@@ -196,12 +227,21 @@ class OutcomeSource:
                                          f"feature-matching recall only)")
         bench, metric, n = parsed
         df, source = self.frame(run_id, bench, prefix)
-        if df is None:
+        if isinstance(n, str):  # a model's own estimate: its rows, else recomputed from its est.log files
+            sel = df[df["estimate"] == n] if df is not None else df
+            if sel is None or sel.empty:
+                df, source = self.frame(run_id, bench, prefix, own=n)
+                if df is None:
+                    return Outcomes(None, reason=source)
+                sel = df[df["estimate"] == n]
+        elif df is None:
             return Outcomes(None, reason=source)
-        sel = df[df["n_points"].isna()] if n is None else df[df["n_points"] == n]
+        else:
+            sel = df[df["estimate"] == ""]
+            sel = sel[sel["n_points"].isna()] if n is None else sel[sel["n_points"] == n]
         if sel.empty:
             return Outcomes(None, reason=f"run {run_id[:8]}: no per-pair outcomes at "
-                                         f"{'its only sample size' if n is None else f'{n} points'} ({source})")
+                                         f"{_what(n)} ({source})")
         if metric == "RR":
             sel = sel[sel["counted"] == 1]
             vals = sel["registered"].astype(float)
@@ -224,8 +264,14 @@ class OutcomeSource:
         return Outcomes(s, source)
 
 
+def _what(n: int | str | None) -> str:
+    return "its only sample size" if n is None else f"its own estimate {n}" if isinstance(n, str) else f"{n} points"
+
+
 def _typed(df: pd.DataFrame) -> pd.DataFrame:
     df = df.copy()
+    # files written before the column existed have no own estimates: every row is an N (or the only one)
+    df["estimate"] = df["estimate"].fillna("").astype(str) if "estimate" in df.columns else ""
     for c in ("n_points", "error", "rre", "rte", "inlier_ratio"):
         df[c] = pd.to_numeric(df[c].replace("", np.nan), errors="coerce")
     for c in ("i", "j", "counted", "present", "registered"):

@@ -63,7 +63,10 @@ def regime_table(pairs: pd.DataFrame, points: Mapping[tuple[str, int], int]) -> 
     need = {"scene", "i", "j", "n_points", "counted", "registered"}
     if missing := need - set(pairs.columns):
         raise ValueError(f"per-pair outcomes lack the columns {sorted(missing)}")
-    d = pairs[pairs["counted"].astype(int) == 1].copy()
+    d = pairs[pairs["counted"].astype(int) == 1]
+    if "estimate" in d.columns:  # a model's own estimates (GeoTransformer's LGR) have no N
+        d = d[d["estimate"].fillna("").astype(str) == ""]
+    d = d.copy()
     if d["n_points"].isna().any():
         raise ValueError("per-pair outcomes without n_points: the method has one estimate per pair, no N")
     key = list(zip(d["scene"].astype(str), d["i"].astype(int), d["j"].astype(int)))
