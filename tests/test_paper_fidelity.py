@@ -419,6 +419,45 @@ def test_the_paper_profiles_2d_net_is_the_official_res50_unet():
     assert (small.arch, small.out_dim, small.normalize, small.output_scale) == ("resnet18", 32, True, "full")
 
 
+# --------------------------------------------------------------------------- the official 2D net's BatchNorm
+
+
+def test_the_2d_net_normalises_each_image_by_its_own_statistics_as_the_official_code():
+    """The official 2D net stays in train mode and sees one image at a time: BatchNorm over a batch of one.
+    ``bn_stats=per_image`` computes exactly that, batched, in training and at test; ``running`` is
+    PyTorch's usual; pretraining uses the usual."""
+    from pcrcg.vision.encoders import ResUNet, build_encoder
+
+    torch.manual_seed(0)
+    official = ResUNet("resnet18", 8, decoder_channels=[32, 16, 16, 8, 8], bn_stats="running").train()
+    ours = ResUNet("resnet18", 8, decoder_channels=[32, 16, 16, 8, 8], bn_stats="per_image")
+    ours.load_state_dict(official.state_dict())  # same keys and tensors: every weights file loads into both
+    x = torch.rand(3, 3, 48, 64)
+    with torch.no_grad():
+        one_at_a_time = torch.cat([official(x[k:k + 1]) for k in range(3)])
+        for mode in (True, False):
+            out = ours.train(mode)(x)
+            assert torch.allclose(out, one_at_a_time, atol=1e-4), mode
+            assert torch.allclose(ours(x[1:2]), out[1:2], atol=1e-4)  # what a batch holds does not matter
+        assert not torch.allclose(official.eval()(x), one_at_a_time, atol=1e-2)  # running averages differ
+    before = [b.clone() for b in ours.buffers()]
+    ours.train()(x).square().mean().backward()  # end to end: gradients reach the encoder
+    assert ours.encoder.conv1.weight.grad is not None and ours.encoder.conv1.weight.grad.abs().sum() > 0
+    assert all(torch.equal(a, b) for a, b in zip(before, ours.buffers()))  # running averages untouched
+
+    assert load_run_config(["features=deep", "projection=explicit"]).encoder2d.bn_stats == "per_image"
+    with pytest.raises(ConfigError, match="encoder2d.bn_stats"):
+        load_run_config(["features=deep", "projection=explicit", "encoder2d.bn_stats=batch"])
+    with pytest.raises(ConfigError, match="encoder2d.bn_stats"):
+        build_encoder({"name": "scratch", "bn_stats": "instance"})
+    from hydra import compose, initialize_config_dir
+
+    from pcrcg.config import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        assert compose("pretrain2d").encoder2d.bn_stats == "running"
+
+
 # --------------------------------------------------------------------------- item 10: SIFT-DLT from the images
 
 
@@ -538,6 +577,11 @@ def test_the_report_names_per_table_the_settings_that_differ_from_the_paper_and_
     assert "the first that sees a point gives its feature (as the official code, the paper's text: several views: " \
            "features averaged)" in text
     assert "circle-loss" not in text and "small fragments" not in text and "points no view sees" not in text
+    # runs logged before encoder2d.bn_stats existed ran with PyTorch's usual statistics, and are said to
+    assert "2D BatchNorm with batch statistics in training and running averages at test (the official code: " \
+           "2D BatchNorm normalising each image by its own statistics)" in text
+    per_image = runs.assign(**{"params.encoder2d.bn_stats": "per_image"})
+    assert "BatchNorm" not in " | ".join(fidelity_lines(per_image))
     # ... and the table says them under its cells
     spec = _report_specs()["backbone_2d"]
     table = fill_table(spec, runs, load_paper(), {"backbone_2d": "cpu"})

@@ -4,8 +4,8 @@ Where the paper's text and the official code (Gardlin/PCR-CG, built on Predator)
 published numbers came from the code; the project offers both and defaults to the code. Each table of
 the report says, from the logged params of the runs behind its cells, which of these settings its
 runs used where they differ from the text, the code or both (:func:`fidelity_lines`): whether the 2D
-network was detached, the RANSAC budget, the profile, the views' combination, the 2D net, the 2D
-matcher, what the Pri3D weights saw.
+network was detached, the RANSAC budget, the profile, the views' combination, the 2D net and its
+BatchNorm statistics, the 2D matcher, what the Pri3D weights saw.
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ def _predator(rec: Mapping) -> bool:
 @dataclass(frozen=True)
 class Setting:
     """One setting: its logged key, the value of the paper's text and of the official code (as logged
-    text; None: the source does not say), words for values, and which runs it concerns."""
+    text; None: the source does not say), words for values, which runs it concerns, and the value that
+    runs logged before the setting existed ran with (None: such runs are left out)."""
 
     key: str
     name: str
@@ -53,6 +54,7 @@ class Setting:
     code: str | None
     words: Mapping[str, str] = field(default_factory=dict)
     applies: Callable[[Mapping], bool] = lambda rec: True
+    before: str | None = None
 
     def say(self, value: str | None) -> str:
         return self.words.get(str(value), f"{self.name} {value}")
@@ -82,6 +84,10 @@ SETTINGS: tuple[Setting, ...] = (
             lambda r: _color(r) and _learned(r)),
     Setting("encoder2d.arch", "2D encoder", "resnet50", "resnet50", {}, lambda r: _deep(r) and _learned(r)),
     Setting("encoder2d.out_dim", "2D feature width", "128", "128", {}, lambda r: _deep(r) and _learned(r)),
+    Setting("encoder2d.bn_stats", "2D BatchNorm statistics", None, "per_image",
+            {"per_image": "2D BatchNorm normalising each image by its own statistics",
+             "running": "2D BatchNorm with batch statistics in training and running averages at test"},
+            lambda r: _deep(r) and _learned(r), before="running"),
     Setting("encoder2d.normalize", "2D input normalisation", None, "False",
             {"True": "2D input normalised (ImageNet mean/std)", "False": "2D input not normalised"},
             lambda r: _deep(r) and _learned(r)),
@@ -109,7 +115,7 @@ def fidelity_lines(runs: pd.DataFrame, settings: tuple[Setting, ...] = SETTINGS)
     out = []
     recs = [rec for _, rec in runs.iterrows()]
     for s in settings:
-        values = pd.Series([_param(r, s.key) for r in recs if s.applies(r)], dtype=object).dropna()
+        values = pd.Series([_param(r, s.key) or s.before for r in recs if s.applies(r)], dtype=object).dropna()
         if values.empty:
             continue
         counts = values.value_counts()

@@ -20,6 +20,7 @@ Public API
       out_dim: 32             # per-pixel feature width
       normalize: true         # ImageNet mean/std inside (the official code feeds [0, 1] RGB: false)
       output_scale: full      # full | half (features at half the input resolution, as the official code)
+      bn_stats: per_image     # per_image | running (see BN_STATS)
       load_decoder: true      # pri3d only: also load the decoder (false: encoder weights only)
 
   ``imagenet`` weights: a plain torchvision ResNet state dict file
@@ -54,11 +55,35 @@ ARCHS = {"resnet18": ("basic", (2, 2, 2, 2)), "resnet34": ("basic", (3, 4, 6, 3)
 INITS = ("scratch", "imagenet", "pri3d")
 PRI3D_FORMAT = "pcrcg-resunet"
 OUTPUT_SCALES = ("full", "half")
+# What the BatchNorm layers normalise by. ``running``: PyTorch's usual (the batch's statistics in training,
+# the running averages at test). ``per_image``: each image by its own per-channel statistics over H x W,
+# in training and at test -- what the official PCR-CG computes, whose 2D network stays in train mode and
+# is called on one image at a time (BatchNorm over a batch of one); learned affine kept, running
+# averages neither used nor updated.
+BN_STATS = ("per_image", "running")
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 # --------------------------------------------------------------------------- ResNet (torchvision names)
+
+
+class PerImageBatchNorm2d(nn.BatchNorm2d):
+    """``nn.BatchNorm2d`` (same parameters, buffers and state-dict keys) that normalises every image of
+    a ``(B, C, H, W)`` batch by its own per-channel mean and biased variance over ``H x W``, in any mode:
+    ``BatchNorm2d.train()`` applied to each image alone, batched. See ``BN_STATS``."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.instance_norm(x, weight=self.weight, bias=self.bias, eps=self.eps)
+
+
+def per_image_batchnorm(module: nn.Module) -> nn.Module:
+    """Make every ``nn.BatchNorm2d`` of ``module`` a :class:`PerImageBatchNorm2d` in place (tensors kept)."""
+    for m in module.modules():
+        if type(m) is nn.BatchNorm2d:
+            m.__class__ = PerImageBatchNorm2d
+    return module
+
 
 
 def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
@@ -205,19 +230,24 @@ class ResUNet(nn.Module):
 
     def __init__(self, arch: str = "resnet18", out_dim: int = 32,
                  decoder_channels: Sequence[int] = (256, 128, 64, 64, 32), normalize: bool = True,
-                 output_scale: str = "full"):
+                 output_scale: str = "full", bn_stats: str = "running"):
         super().__init__()
         if int(out_dim) < 1:
             raise ConfigError("encoder2d.out_dim", out_dim, "an integer >= 1")
         if output_scale not in OUTPUT_SCALES:
             raise ConfigError("encoder2d.output_scale", output_scale, " | ".join(OUTPUT_SCALES))
+        if bn_stats not in BN_STATS:
+            raise ConfigError("encoder2d.bn_stats", bn_stats, " | ".join(BN_STATS))
         self.arch = arch
+        self.bn_stats = bn_stats
         self.out_dim = int(out_dim)
         self.decoder_channels = [int(c) for c in decoder_channels]
         self.normalize = bool(normalize)
         self.output_scale = output_scale
         self.encoder = ResNetEncoder(arch)
         self.decoder = UNetDecoder(self.encoder.channels, self.decoder_channels, self.out_dim, half=output_scale == "half")
+        if bn_stats == "per_image":
+            per_image_batchnorm(self)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.frozen = False
@@ -345,7 +375,8 @@ def build_encoder(cfg: Any, out_dim: int | None = None) -> ResUNet:
     width = int(out_dim if out_dim is not None else option(cfg, "out_dim", 32))
     dec = option(cfg, "decoder_channels", None) or (256, 128, 64, 64, 32)
     model = ResUNet(arch, width, decoder_channels=list(dec), normalize=bool(option(cfg, "normalize", True)),
-                    output_scale=str(option(cfg, "output_scale", "full") or "full"))
+                    output_scale=str(option(cfg, "output_scale", "full") or "full"),
+                    bn_stats=str(option(cfg, "bn_stats", "running") or "running"))
     weights = option(cfg, "weights", None)
     if name in ("imagenet", "pri3d") and not weights:
         raise ConfigError("encoder2d.weights", weights,
