@@ -518,6 +518,7 @@ GROUP_RULES: dict[str, Any] = {
     "encoder2d.arch": lambda k, v: _one_of(k, v, ("resnet18", "resnet34", "resnet50")),
     "encoder2d.training": lambda k, v: _one_of(k, v, ("detached", "end_to_end")),
     "encoder2d.bn_stats": lambda k, v: _one_of(k, v, ("per_image", "running")),  # vision.encoders.BN_STATS
+    "encoder2d.memo_mb": lambda k, v: None if v is None else _int_at_least(k, v, 0),
     "encoder2d.out_dim": lambda k, v: _int_at_least(k, v, 1),
     "features.dim": lambda k, v: _int_at_least(k, v, 0),
     "projection.views": lambda k, v: _one_of(k, v, VIEWS),

