@@ -21,10 +21,10 @@ from pcrcg.config import CONF_DIR
 from pcrcg.errors import ConfigError
 
 # the order of the tables' sweeps (later tables reuse models trained by earlier ones: main_results trains
-# Predator and PCR-CG, which ransac_budget, window_size 11, views_explicit 2 and icp_init reuse; the two other
+# Predator and PCR-CG, which ransac_budget, window_size 11, views_explicit 2, icp_init and explicit_input reuse; the two other
 # backbones come last: they train their own models). Every file of conf/experiment/ is listed (tests/test_experiments.py).
 TABLE_ORDER = ("main_results", "ransac_budget", "window_size", "views", "views_explicit", "backbone_2d", "projection",
-               "icp_init", "sift_dlt", "geotransformer", "cofinet")
+               "icp_init", "sift_dlt", "explicit_input", "geotransformer", "cofinet")
 
 
 def sweep_axes(experiment: str, conf_dir: Path = CONF_DIR) -> dict[str, list[str]]:

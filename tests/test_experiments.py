@@ -120,6 +120,7 @@ two_lanes
     ["+experiment=window_size", "window_size=11"],
     ["+experiment=views_explicit", "views=2"],
     ["+experiment=backbone_2d", "encoder2d=pri3d", "encoder2d.training=detached"],
+    ["+experiment=explicit_input", "projection.unseen_value=1.0", "matcher2d.pairs=paper"],
 ])
 def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
     """icp_init's and ransac_budget's PCR-CG and the main rows of the explicit tables are main_results' PCR-CG

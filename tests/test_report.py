@@ -101,7 +101,7 @@ def test_every_table_and_file_is_written(store):
     names = list(parse_specs(OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").specs,
                                                     resolve=True)))
     assert names == ["main_results", "rre_rte", "window_size", "views", "views_explicit", "backbone_2d", "projection", "icp_init",
-                     "sift_dlt", "ransac_budget", "geotransformer", "cofinet", "default", "ablations_3dmatch"]
+                     "sift_dlt", "ransac_budget", "explicit_input", "geotransformer", "cofinet", "default", "ablations_3dmatch"]
     for name in names:
         for suffix in ("md", "tex", "csv"):
             assert (out / f"{name}.{suffix}").stat().st_size > 100, name
