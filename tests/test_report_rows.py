@@ -57,6 +57,12 @@ def test_jobs_are_recorded_with_the_params_and_tags_the_filters_read():
     # the filter language: a value that no job has selects nothing, an unknown key selects nothing
     assert match(runs, {"window_size": 11}).sum() == 1 and not match(runs, {"window_size": 5}).any()
     assert not match(runs, {"no.such.key": 1}).any()
+    # numbers as numbers: a float filter selects the text a float param is logged as, and a bool a logged True
+    logged = pd.DataFrame({"params.x": ["1.0", "0.0", "1", "abc"], "params.b": ["True", "False", "true", "1"]})
+    assert match(logged, {"x": 1.0}).tolist() == [True, False, True, False]
+    assert match(logged, {"x": 0}).tolist() == [False, True, False, False]
+    assert match(logged, {"x": "1.0"}).tolist() == [True, False, False, False]
+    assert match(logged, {"b": True}).tolist() == [True, False, True, False]
 
 
 @pytest.mark.parametrize("table", sorted(_specs()))

@@ -110,13 +110,20 @@ def _text(v: Any) -> str:
 
 
 def match(runs: pd.DataFrame, where: Mapping[str, Any]) -> pd.Series:
-    """Boolean mask of runs whose params (else tags) equal ``where`` (as text)."""
+    """Boolean mask of runs whose params (else tags) equal ``where``: as text, or as numbers where the filter's
+    value is a number (``1.0`` selects a param logged ``1.0`` or ``1``; ``true`` a logged ``True``)."""
     mask = pd.Series(True, index=runs.index)
     for key, value in where.items():
         col = f"params.{key}" if f"params.{key}" in runs.columns else f"tags.{key}"
         if col not in runs.columns:
             return pd.Series(False, index=runs.index)
-        mask &= runs[col].astype(str) == _text(value)
+        logged = runs[col].astype(str)
+        same = logged == _text(value)
+        if isinstance(value, bool):
+            same |= logged.str.lower() == _text(value)
+        elif isinstance(value, (int, float)):
+            same |= pd.to_numeric(logged, errors="coerce") == float(value)
+        mask &= same
     return mask
 
 
