@@ -450,6 +450,8 @@ def test_the_2d_net_normalises_each_image_by_its_own_statistics_as_the_official_
         load_run_config(["features=deep", "projection=explicit", "encoder2d.bn_stats=batch"])
     with pytest.raises(ConfigError, match="encoder2d.bn_stats"):
         build_encoder({"name": "scratch", "bn_stats": "instance"})
+    # a checkpoint's lifting config from before the key: evaluated as it was trained
+    assert build_encoder({"name": "scratch"}).bn_stats == "running"
     from hydra import compose, initialize_config_dir
 
     from pcrcg.config import CONF_DIR
