@@ -44,31 +44,30 @@ def main(argv: list[str] | None = None) -> None:
 
     import pcrcg.registration.feature_registration as P
     from pcrcg.evaluation.model import as_fragment
-    from pcrcg.models.predict import predict_benchmark
     from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
     from pcrcg.registration.ransac import RansacConfig
-    from pcrcg.models.train import load_module
-    from pcrcg.vision import features
+    from pcrcg.models.train import infer, load_module
 
     torch.set_num_threads(1)
 
-    def infer_all(memo_bytes: int) -> tuple[list, float]:
-        """Both benchmarks' outputs and seconds per pair, deep 2D maps reused up to ``memo_bytes``."""
-        saved, features.DEEP_MEMO_BYTES = features.DEEP_MEMO_BYTES, memo_bytes
-        try:
-            got, t0 = [], time.perf_counter()
-            for b in ("3DMatch", "3DLoMatch"):
-                gen = predict_benchmark(None, args.root, args.checkpoint, b, progress=False, max_pairs=args.pairs)
-                got += list(itertools.islice(gen, args.pairs))
-            return got, (time.perf_counter() - t0) / max(len(got), 1)
-        finally:
-            features.DEEP_MEMO_BYTES = saved
+    module = load_module(args.checkpoint, "cpu")
+    extractor = module.lifter.extractor if module.lifter is not None else None
+    deep = getattr(extractor, "kind", None) == "deep"
+    bound = extractor.memo_bytes if deep else None  # the checkpoint's encoder2d.memo_mb, else DEEP_MEMO_BYTES
 
-    lifter = load_module(args.checkpoint, "cpu").lifter
-    deep = lifter is not None and getattr(lifter.extractor, "kind", None) == "deep"
+    def infer_all(memo_bytes: int | None) -> tuple[list, float]:
+        """Both benchmarks' outputs and seconds per pair, deep 2D maps reused up to ``memo_bytes``."""
+        if deep:
+            extractor.memo_bytes = memo_bytes
+            extractor._deep_memo.clear()  # a new bound starts from an empty memo
+        got, t0 = [], time.perf_counter()
+        for b in ("3DMatch", "3DLoMatch"):
+            got += list(itertools.islice(infer(module, args.root, b, max_pairs=args.pairs, progress=False), args.pairs))
+        return got, (time.perf_counter() - t0) / max(len(got), 1)
+
     if deep:  # before: the 2D encoder on every pair's views; after: each view's map once (eval mode)
         before, t_before = infer_all(0)
-    outs, t_after = infer_all(features.DEEP_MEMO_BYTES)
+    outs, t_after = infer_all(bound)
     if deep:
         same = all(np.array_equal(getattr(a, f).descriptors, getattr(b, f).descriptors)
                    and np.array_equal(getattr(a, f).overlap, getattr(b, f).overlap)

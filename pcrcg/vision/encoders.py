@@ -85,7 +85,6 @@ def per_image_batchnorm(module: nn.Module) -> nn.Module:
     return module
 
 
-
 def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False)
 
