@@ -189,7 +189,8 @@ def test_failed_missing_and_running_cells_are_dashes_with_reasons(store):
     one = views[views["variant"] == "1"].iloc[0]
     assert one["reason"] == f"still running or crashed (run {store['running'][:8]})"
     two = views[views["variant"] == "2"].iloc[0]
-    assert two["reason"] == "no run of experiment 'views' with views=2, projection.name=implicit, encoder2d.name=pri3d at profile cpu"
+    assert two["reason"] == ("no run of experiment 'views' with views=2, projection.name=implicit, encoder2d.name=pri3d "
+                             "at profile cpu; nor of experiment 'projection' (features.name=deep)")
     tex = (store["out"] / "window_size.tex").read_text()
     assert r"PCR-CG 17x17 (ours) & -- [1] & -- [1] & -- [1] & -- [1] & -- [1] \\" in tex
     assert "% [1] failed: out of memory" in tex

@@ -5,7 +5,8 @@ selection (``findings``) filter the tracked runs by their flattened config and t
 of the experiment satisfies would leave its cells empty forever ("no run of experiment ..."), however long
 the sweep ran. Here each experiment's jobs (``pcrcg.experiments``) are composed as ``python -m pcrcg.run``
 composes them, recorded as the tracker records them (``params.<key>``, tags ``label`` / ``method``), and
-every filter must select at least one of them.
+every filter must select at least one of them. A row that counts another experiment's runs (``same_as``)
+must name jobs of one config hash in both experiments.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from omegaconf import OmegaConf
 
 from pcrcg.config import CONF_DIR, load_run_config
 from pcrcg.experiments import experiment_jobs
-from pcrcg.pipeline import method_label
+from pcrcg.pipeline import method_label, run_hash
 from pcrcg.report.findings import load_findings
 from pcrcg.report.spec import parse_specs
 from pcrcg.report.tables import _paper_value, fill_table, load_paper, match
@@ -32,7 +33,8 @@ def _record(experiment: str, overrides: list[str]) -> dict[str, str]:
     cfg = load_run_config([*exp, *overrides, "profile=cpu"], validate=False)
     data = to_plain(cfg)
     rec = {f"params.{k}": v for k, v in flatten(data).items()}
-    rec.update({"tags.label": method_label(data), "tags.method": str(data["method"]), "experiment": experiment})
+    rec.update({"tags.label": method_label(data), "tags.method": str(data["method"]), "experiment": experiment,
+                "tags.config_hash": run_hash(cfg)})
     return rec
 
 
@@ -84,6 +86,66 @@ def test_every_row_and_cell_of_the_table_selects_a_job_of_its_experiment(table):
             if col.where and _paper_value(paper, spec.paper_table, row, col) is not None:
                 assert (rows & match(runs, col.where)).any(), \
                     f"{table}: row {row.text!r} x column {col.where} selects {how} of experiment {exp!r}"
+
+
+@pytest.mark.parametrize("table", sorted(t for t, s in _specs().items() if any(r.same_as for r in s.rows)))
+def test_a_row_that_counts_another_experiments_runs_names_the_same_config_there(table):
+    """``same_as``: the other experiment's jobs that the row selects have the config hash of the row's own job,
+    so that a run of either is the same run (a change to one experiment file that breaks this fails here)."""
+    for row in (r for r in _specs()[table].rows if r.same_as):
+        exp = row.experiment or _specs()[table].experiment
+        own = _jobs(exp, row.job)
+        own = own[match(own, row.where)]
+        other = _jobs(row.same_as.experiment, row.same_as.job)
+        other = other[match(other, {**row.where, **row.same_as.where})]
+        assert len(own) == 1 and len(other) == 1, (table, row.text, len(own), len(other))
+        assert own["tags.config_hash"].iloc[0] == other["tags.config_hash"].iloc[0], \
+            f"{table}: row {row.text!r} is not the same config in {exp!r} and {row.same_as.experiment!r}"
+
+
+def _fake_run(run_id: str, experiment: str, start: int, params: dict, rr: float) -> dict:
+    return {"run_id": run_id, "experiment": experiment, "status": "FINISHED", "start_time": start,
+            "tags.profile": "cpu", "tags.config_hash": "h", "tags.code_version": "c",
+            **{f"params.{k}": str(v) for k, v in params.items()}, "metrics.3DLoMatch/rr_5000": rr}
+
+
+def test_a_same_as_row_counts_the_other_experiments_runs_newest_per_seed_and_says_so():
+    spec = parse_specs({"w": {"experiment": "window_size", "columns": [{"benchmark": "3DLoMatch", "metric": "RR",
+                                                                        "n_points": 5000}],
+                              "rows": [{"method": "PCR-CG", "variant": "11x11", "where": {"window_size": 11},
+                                        "same_as": {"experiment": "main_results", "where": {"label": "PCR-CG"}}},
+                                       {"method": "PCR-CG", "variant": "3x3", "where": {"window_size": 3}}]}})["w"]
+    runs = pd.DataFrame([
+        _fake_run("own0", "window_size", 5, {"window_size": 11, "seed": 0}, 10.0),
+        _fake_run("old0", "main_results", 1, {"window_size": 11, "seed": 0}, 99.0),  # older than own0: not counted
+        _fake_run("m1", "main_results", 2, {"window_size": 11, "seed": 1}, 20.0),
+        _fake_run("pred", "main_results", 3, {"window_size": 11, "seed": 2}, 50.0),  # Predator: not the row's config
+        _fake_run("w3", "window_size", 4, {"window_size": 3, "seed": 0}, 7.0),
+    ])
+    runs["tags.label"] = ["PCR-CG", "PCR-CG", "PCR-CG", "Predator", "PCR-CG"]
+    filled = fill_table(spec, runs, load_paper(), {"window_size": "cpu", "main_results": "cpu"})
+    eleven, three = (filled.cell(r, spec.columns[0]) for r in spec.rows)
+    assert sorted(r.run_id for r in eleven.runs) == ["m1", "own0"] and eleven.mean == 15.0
+    assert [r.run_id for r in three.runs] == ["w3"]  # a row without same_as: its own experiment only
+    assert filled.shared == ["PCR-CG 11x11: also the runs of experiment 'main_results' (label=PCR-CG) (2 finished), "
+                             "the same config"]
+    from pcrcg.report.render import to_markdown
+
+    assert "Rows that count another experiment's runs of their config: PCR-CG 11x11" in to_markdown(filled)
+    # neither experiment ran it: the reason names both
+    empty = fill_table(spec, runs[runs["run_id"] == "w3"], load_paper(), {"window_size": "cpu", "main_results": "cpu"})
+    assert empty.cell(spec.rows[0], spec.columns[0]).reason == (
+        "no run of experiment 'window_size' with window_size=11 at profile cpu; "
+        "nor of experiment 'main_results' (label=PCR-CG)")
+
+
+@pytest.mark.parametrize("bad", [{"where": {"label": "x"}}, {"experiment": 3}, {"experiment": "m", "wher": {}}, "m"])
+def test_a_bad_same_as_is_one_line_naming_the_setting(bad):
+    from pcrcg.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"specs\.w\.rows\[0\]\.same_as"):
+        parse_specs({"w": {"columns": [{"benchmark": "3DLoMatch", "metric": "RR"}],
+                           "rows": [{"method": "PCR-CG", "where": {"a": 1}, "same_as": bad}]}})
 
 
 def test_a_row_outside_the_sweep_says_how_to_run_it():

@@ -184,6 +184,8 @@ def to_markdown(table: FilledTable) -> str:
         out.append("Protocol of these runs: " + "; ".join(table.protocol))
         out.append("")
     out += [table.identity_text(), ""]
+    if table.shared:
+        out += ["Rows that count another experiment's runs of their config: " + "; ".join(table.shared) + ".", ""]
     if table.fidelity:
         out.append("Settings of these runs that differ from the paper's text or its official code: "
                    + "; ".join(table.fidelity) + ".")

@@ -16,6 +16,13 @@ one), ``{pairs: [[<reference row>, <row>], ...]}`` and ``{columns: [[<reference 
 <variant>], ...]}`` (within each row, e.g. ICP from the original vs. the improved pose); keys
 combine. A row is named by its label, its ``method variant`` text, its variant or its method
 (whichever is unique). Only rows with runs of ours take part (published baselines do not).
+
+``same_as: {experiment: <name>, where: {...}, job: <overrides>}`` on a row: that experiment runs the row's config too (the
+window table's 11x11 row is ``main_results``' PCR-CG run; the views table's 2-view row is the projection
+table's Pri3D/implicit run). Its runs that match the row's ``where`` and its own ``where`` count in the row's
+cells beside the row's own, newest per seed; the report names the borrowed experiment under the table, and
+``tests/test_report_rows.py`` checks that both experiments' jobs have one config hash. A sweep (or the
+findings' job list) then need not run one config twice.
 """
 
 from __future__ import annotations
@@ -63,6 +70,20 @@ def run_command(experiment: str, job: str | None = None, profile: str | None = N
 
 
 @dataclass(frozen=True)
+class SameAs:
+    """Another experiment whose runs matching ``where`` (and the row's own filter) are the row's config."""
+
+    experiment: str
+    where: Mapping[str, Any] = field(default_factory=dict)
+    job: str | None = None  # the overrides that make those runs when that experiment's sweep does not
+
+    @property
+    def text(self) -> str:
+        cond = ", ".join(f"{k}={v}" for k, v in self.where.items())
+        return f"experiment '{self.experiment}'" + (f" ({cond})" if cond else "")
+
+
+@dataclass(frozen=True)
 class Row:
     method: str
     variant: str = ""
@@ -71,6 +92,7 @@ class Row:
     experiment: str | None = None
     reason: str | None = None  # why this row has no runs by design (e.g. a published baseline)
     job: str | None = None  # overrides beyond the experiment's sweep that make this row's runs (a job of its own)
+    same_as: SameAs | None = None  # another experiment that runs this row's config (its runs count too)
 
     @property
     def text(self) -> str:
@@ -133,6 +155,7 @@ class TableSpec:
     def experiments(self) -> list[str]:
         out = [self.experiment]
         out += [r.experiment for r in self.rows if r.experiment and r.experiment not in out]
+        out += [r.same_as.experiment for r in self.rows if r.same_as and r.same_as.experiment not in out]
         return out
 
 
@@ -208,6 +231,15 @@ def parse_compare(raw: Any, rows: Sequence[Row], columns: Sequence[Column], tabl
     return tuple(unique)
 
 
+def _same_as(raw: Any, where: str) -> SameAs | None:
+    if raw is None:
+        return None
+    if not isinstance(raw, Mapping) or not isinstance(raw.get("experiment"), str) \
+            or set(raw) - {"experiment", "where", "job"} or not isinstance(raw.get("where") or {}, Mapping):
+        raise ConfigError(where, raw, "{experiment: <name>, where: {key: value, ...}, job: <overrides, optional>}")
+    return SameAs(raw["experiment"], dict(raw.get("where") or {}), raw.get("job"))
+
+
 def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
     """``specs`` node of conf/report.yaml -> {name: TableSpec}."""
     out: dict[str, TableSpec] = {}
@@ -215,8 +247,8 @@ def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
         rows = tuple(
             Row(method=str(r["method"]), variant=str(r.get("variant") or ""), label=str(r.get("label") or ""),
                 where=dict(r.get("where") or {}), experiment=r.get("experiment"), reason=r.get("reason"),
-                job=r.get("job"))
-            for r in s["rows"]
+                job=r.get("job"), same_as=_same_as(r.get("same_as"), f"specs.{name}.rows[{i}].same_as"))
+            for i, r in enumerate(s["rows"])
         )
         if not rows:
             raise ConfigError(f"specs.{name}.rows", [], "at least one row")

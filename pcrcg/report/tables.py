@@ -5,7 +5,8 @@ cell with the same seed (the same config run again, or a config that changed sin
 newest counts. With ``identity=config_and_code`` (the default) a cell counts only the runs of one
 code version, that of its newest run; with ``identity=config`` its seeds may come from different code.
 A cell without a finished run carries the reason (failed with its error, not run with its
-reason, still running, no such run, or the row's own reason).
+reason, still running, no such run, or the row's own reason). A row with ``same_as`` also counts the
+runs of the other experiment that runs its config (``pcrcg.report.spec``).
 """
 
 from __future__ import annotations
@@ -85,6 +86,7 @@ class FilledTable:
     fidelity: list[str] = field(default_factory=list)  # settings of the runs that differ from the paper's text or code
     identity: str = DEFAULT_IDENTITY  # which runs counted as the same: config_and_code | config
     codes: dict[str, int] = field(default_factory=dict)  # code version -> runs of it behind the cells
+    shared: list[str] = field(default_factory=list)  # rows that also count another experiment's runs (same_as)
 
     def identity_text(self) -> str:
         """Which runs a cell counts, and the code versions behind the table."""
@@ -215,13 +217,19 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
     """
     cells: list[Cell] = []
     coverage: dict[str, tuple[float, float, int]] = {}
+    shared: list[str] = []
     for row in spec.rows:
         exp = row.experiment or spec.experiment
         prof = profiles.get(exp)
-        base = runs[runs["experiment"] == exp] if "experiment" in runs.columns else runs.iloc[0:0]
-        if prof is not None and "tags.profile" in base.columns:
-            base = base[base["tags.profile"].astype(str) == prof]
+        base = _experiment_runs(runs, exp, prof)
         row_runs = base[match(base, row.where)] if row.where else (base.iloc[0:0] if row.reason else base)
+        if row.same_as is not None and row.where:
+            other = _experiment_runs(runs, row.same_as.experiment, profiles.get(row.same_as.experiment, prof))
+            other = other[match(other, {**row.where, **row.same_as.where})]
+            if not other.empty:
+                row_runs = pd.concat([row_runs, other])
+            done = int((other["status"] == "FINISHED").sum()) if "status" in other.columns else 0
+            shared.append(f"{row.text}: also the runs of {row.same_as.text} ({done} finished), the same config")
         for col in spec.columns:
             cell = Cell(row, col, _paper_value(paper, spec.paper_table, row, col))
             cells.append(cell)
@@ -232,6 +240,8 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             done = _newest_per_seed(cand[cand["status"] == "FINISHED"], identity)
             if done.empty:
                 cell.reason = row.reason or _missing_reason(cand, exp, {**row.where, **col.where}, prof, row)
+                if cand.empty and row.same_as is not None and not row.reason:
+                    cell.reason += f"; nor of {row.same_as.text}"
                 continue
             vals, refs, keys = [], [], []
             for _, rec in done.iterrows():
@@ -267,7 +277,15 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
     fidelity = fidelity_lines(runs[runs["run_id"].isin(used)]) if used else []
     codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
     return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity,
-                       identity=identity, codes={str(c): int(n) for c, n in codes.items()})
+                       identity=identity, codes={str(c): int(n) for c, n in codes.items()}, shared=shared)
+
+
+def _experiment_runs(runs: pd.DataFrame, experiment: str, profile: str | None) -> pd.DataFrame:
+    """The runs of ``experiment`` (of ``profile`` when given)."""
+    base = runs[runs["experiment"] == experiment] if "experiment" in runs.columns else runs.iloc[0:0]
+    if profile is not None and "tags.profile" in base.columns:
+        base = base[base["tags.profile"].astype(str) == profile]
+    return base
 
 
 def _values(df: pd.DataFrame, col: str) -> list[str]:
