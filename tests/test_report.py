@@ -110,6 +110,11 @@ def test_every_table_and_file_is_written(store):
     assert "python -m pcrcg.report" in index and "mlflow.db" in index
     assert "- 3DLoMatch: n_pairs 1781" in index and "- seeds 0, 1" in index
     assert "`eval.ransac_iterations`: 50000" in index
+    # per table: the experiments its rows read and the runs behind its cells (not every finished run of them)
+    line = next(x for x in index.splitlines() if x.startswith("| window_size |"))
+    df = pd.read_csv(out / "window_size.csv", dtype={"variant": str})
+    behind = {r for ids in df["run_ids"].dropna() for r in str(ids).split(";")}
+    assert line.startswith(f"| window_size | window_size, main_results | cpu | {len(behind)} |"), (line, behind)
 
 
 def test_layout_follows_paper_tables_csv(store):

@@ -221,12 +221,14 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
                "how many hold / are reversed beyond the paired bootstrap interval over the test pairs / lie "
                "within noise; untested ones (no per-pair outcomes, or no run of ours) are counted apart.")
     out.append("")
-    out.append("| Table | Experiment | Profile | Finished runs | Paper trend kept (row pairs) "
+    out.append("| Table | Experiments | Profile | Runs behind the cells | Paper trend kept (row pairs) "
                "| Paper orderings: holds / reversed / within noise (untested) | Files |")
     out.append("|---|---|---|---:|---|---|---|")
     for name, table in result.tables.items():
         exp = table.spec.experiment
-        n_done = int(((runs["experiment"] == exp) & (runs["status"] == "FINISHED")).sum()) if not runs.empty else 0
+        # the table's own experiment first, then those its rows read (rows[].experiment, rows[].same_as)
+        exps = ", ".join(table.spec.experiments)
+        n_done = len({r.run_id for c in table.cells for r in c.runs})
         t = trend_agreement(table)
         trend = f"{t['agree']}/{t['pairs']}" if t["pairs"] else "n/a"
         o = t["orderings"]
@@ -238,7 +240,7 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
         files = ", ".join(f"[{s}]({name}.{s})" for s in ("md", "tex", "csv"))
         if table.orderings:
             files += f", [orderings]({name}_orderings.csv)"
-        out.append(f"| {name} | {exp} | {profiles.get(exp) or '—'} | {n_done} | {trend} | {orderings} | {files} |")
+        out.append(f"| {name} | {exps} | {profiles.get(exp) or '—'} | {n_done} | {trend} | {orderings} | {files} |")
     out += ["", "## Protocol (from the runs' logged settings)", ""]
     out += _protocol(runs)
     out.append("")
