@@ -123,6 +123,46 @@ def test_seeds_are_pooled_per_pair_and_the_point_is_the_mean_over_seeds():
     assert mean_std([5.0]) == (5.0, 0.0, 1)
 
 
+def test_seeds_that_disagree_widen_the_resampled_interval_and_agreeing_seeds_keep_it():
+    """seeds="resample": seeds drawn seed against seed, then pairs. Seed 0 of b registers 30% more pairs than
+    a's seed 0, seed 1 of b 10% fewer than a's seed 1: pooled, +10% looks resolved on 500 pairs; resampled,
+    the all-seed-1 draws reach below 0 and it is not."""
+    rng = np.random.default_rng(5)
+    _, scenes = _outcomes(rng, sizes=(200, 300))
+    a = (rng.random((2, len(scenes))) < 0.4)
+    b = a.copy()
+    b[0, rng.choice(np.flatnonzero(~a[0]), size=150, replace=False)] = True  # seed 0: +30% of the pairs
+    b[1, rng.choice(np.flatnonzero(a[1]), size=50, replace=False)] = False  # seed 1: -10%
+    pooled = paired_bootstrap(a, b, scenes, seeds="pool")
+    resampled = paired_bootstrap(a, b, scenes, seeds="resample")
+    assert pooled.diff == pytest.approx(resampled.diff) and pooled.excludes_zero and pooled.lo > 0
+    assert resampled.lo < 0 < resampled.hi and (resampled.n_seeds, resampled.seed_mode) == (2, "resample")
+    assert (pooled.n_seeds, pooled.seed_mode) == (2, "pool")
+    # seeds that agree: resolved either way
+    c = a.copy()
+    for k in (0, 1):
+        c[k, rng.choice(np.flatnonzero(~a[k]), size=100, replace=False)] = True
+    agree = paired_bootstrap(a, c, scenes, seeds="resample")
+    assert agree.lo > 0 and agree.seed_mode == "resample"
+    # one seed, or seeds that are not matched (different counts): the plain pair bootstrap, the same replicates
+    one = paired_bootstrap(a[:1], b[:1], scenes, seeds="resample")
+    plain = paired_bootstrap(a[0], b[0], scenes)
+    assert (one.lo, one.hi, one.seed_mode) == (plain.lo, plain.hi, "pool")
+    uneven = paired_bootstrap(a, b[:1], scenes, seeds="resample")
+    assert uneven.seed_mode == "pool" and uneven.n_seeds == 1
+    with pytest.raises(ValueError, match="seeds must be one of"):
+        paired_bootstrap(a, b, scenes, seeds="both")
+
+
+def test_a_bad_seeds_setting_is_one_line_naming_it():
+    from pcrcg.errors import ConfigError
+    from pcrcg.report.orderings import StatsSettings
+
+    assert StatsSettings.from_dict({}).seeds == "resample" and StatsSettings.from_dict({"seeds": "pool"}).seeds == "pool"
+    with pytest.raises(ConfigError, match="stats.seeds"):
+        StatsSettings.from_dict({"seeds": "bootstrap"})
+
+
 def test_verdicts_without_an_ordering_and_bad_input():
     a, scenes = _outcomes(np.random.default_rng(5))
     iv = paired_bootstrap(a, a, scenes)
@@ -493,6 +533,11 @@ def test_pcrcg_above_predator_holds_on_3dlomatch_and_is_noise_on_3dmatch(report)
     lo = _line(report, "main_results", "PCR-CG − Predator (geometry only)", "3DLoMatch RR 5000")
     assert lo.verdict == HOLDS and lo.interval.lo > 0 and lo.paper_diff == pytest.approx(6.5)
     assert lo.n_seeds == 2 and lo.ours_std is not None and lo.interval.n_pairs == 72 and lo.interval.n_scenes == 2
+    # seed against seed (in seed order on both sides), then pairs: stats.seeds=resample, the default
+    assert (lo.interval.n_seeds, lo.interval.seed_mode) == (2, "resample")
+    from pcrcg.report.orderings import _seed_key
+
+    assert sorted(["10", "b", "2", "0"], key=_seed_key) == ["0", "2", "10", "b"]
     # the pooled point estimate is the difference of the table's means over seeds
     t = report["result"].tables["main_results"]
     cells = {c.row.method: c for c in t.cells if c.col.benchmark == "3DLoMatch" and c.col.metric == "RR"
@@ -541,8 +586,8 @@ def test_tables_csv_and_index_show_the_orderings(report):
     assert row["verdict"] == HOLDS and row["n_boot"] == 2000 and row["ci_low"] > 0 and row["n_seeds"] == 2
     assert set(row["row_run_ids"].split(";")) == {report["ids"][("PCR-CG", 0)], report["ids"][("PCR-CG", 1)]}
     index = (out / "README.md").read_text()
-    assert "| window_size | window_size | cpu | 4 | 15/30 | 2 / 2 / 2 |" in index
-    assert "| views | views | cpu | 3 | 0/14 | 0 / 0 / 0 (4 untested) |" in index
+    assert "| window_size | window_size, main_results | cpu | 4 | 15/30 | 2 / 2 / 2 |" in index
+    assert "| views | views, projection | cpu | 3 | 0/14 | 0 / 0 / 0 (4 untested) |" in index
     tex = (out / "window_size.tex").read_text()
     assert "the paper's orderings, tested" in tex and r"PCR-CG 17x17 $-$ PCR-CG 11x11 & 3DLoMatch RR 5000" in tex
 

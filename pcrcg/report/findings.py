@@ -6,7 +6,8 @@ they may come from different experiments) and comparisons ``[reference, compared
 says go the ``expect`` way. Each comparison is filled and tested exactly as a table's orderings
 (:func:`pcrcg.report.tables.fill_table`, :func:`pcrcg.report.orderings.check_orderings`): ours as
 the mean ± std over seeds of the difference, the paired bootstrap interval over the test pairs with
-the seeds pooled per pair, at every place of ``stats.at`` (5000 points, the mean over N).
+several seeds drawn seed against seed before the pairs (``stats.seeds``), at every place of ``stats.at``
+(5000 points, the mean over N).
 
 Verdict of a line: ``holds`` / ``reversed`` (the interval excludes 0 on the expected / the other
 side), ``not resolved`` (it includes 0, or there is no interval: the note says why), ``not run``
@@ -35,7 +36,7 @@ import pandas as pd
 from pcrcg.errors import ConfigError
 from pcrcg.report.orderings import MEAN, OrderingLine, StatsSettings, check_orderings
 from pcrcg.report.spec import Column, Comparison, Row, TableSpec, run_command
-from pcrcg.report.stats import HOLDS, REVERSED
+from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
 from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
@@ -345,7 +346,8 @@ def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list
 def intro(filled: FilledFindings) -> str:
     iv = next((ln.ours.interval for ln in filled.lines if ln.ours.interval is not None), None)
     how = (f"paired bootstrap {iv.level:.0%} interval over the test pairs ({iv.n_boot} resamples within each "
-           f"scene, seed {iv.seed}; seeds pooled per pair, over the seeds both rows ran, as the tables' orderings)" if iv is not None else
+           f"scene, seed {iv.seed}; {seed_rule_text([ln.ours.interval for ln in filled.lines])}, as the tables' "
+           "orderings)" if iv is not None else
            "paired bootstrap interval over the test pairs, as the tables' orderings")
     real = (f" The {filled.spec.real} columns: the same runs evaluated on the real scene "
             f"(`{filled.spec.real_command()}`); few pairs, wide intervals." if filled.spec.real else "")

@@ -12,9 +12,10 @@ have one place), one :class:`OrderingLine`:
 * the paired bootstrap interval (:mod:`pcrcg.report.stats`) over the test pairs, from the runs'
   per-pair outcomes (:mod:`pcrcg.report.outcomes`); for ``mean`` a pair's outcome is its mean
   over the sizes (the statistic is linear, so this is the mean over sizes of the recalls);
-  several seeds are pooled per pair. Where the two rows share some seeds but not all, only the
-  shared seeds count (means and interval): seed is compared with seed, not one row's extra seeds
-  with nothing;
+  with several seeds, seed is compared with seed: where the two rows share seeds only the shared seeds
+  count (means and interval), and the bootstrap draws seeds (the same for both rows), then pairs
+  (``stats.seeds: resample``, :mod:`pcrcg.report.stats`), so that seeds that disagree widen the interval;
+  ``stats.seeds: pool`` averages each row's seeds per pair and resamples pairs only;
 * the verdict: ``holds`` (the interval excludes 0 on the paper's side), ``reversed`` (on the
   other side), ``within noise``, or no ordering to test (a tie or no numbers in the paper);
   ``None`` with a reason when there is no interval.
@@ -29,7 +30,7 @@ import numpy as np
 
 from pcrcg.errors import ConfigError
 from pcrcg.report.spec import Column, Comparison
-from pcrcg.report.stats import LEVEL, N_BOOT, SEED, Interval, mean_std, paired_bootstrap, verdict
+from pcrcg.report.stats import LEVEL, N_BOOT, SEED, SEED_MODES, Interval, mean_std, paired_bootstrap, verdict
 from pcrcg.report.tables import Cell, FilledTable
 
 MEAN = "mean"
@@ -46,6 +47,7 @@ class StatsSettings:
     level: float = LEVEL
     at: tuple[Any, ...] = (5000, MEAN)
     metrics: tuple[str, ...] = TESTED_METRICS
+    seeds: str = "resample"  # resample: seeds, then pairs; pool: seeds averaged per pair, pairs resampled
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "StatsSettings":
@@ -63,7 +65,10 @@ class StatsSettings:
         if n_boot < 1:
             raise ConfigError("stats.n_boot", n_boot, "a positive number of resamples, e.g. 2000")
         seed = _number(int, "stats.seed", d.get("seed", cls.seed), "an integer")
-        return cls(n_boot, seed, level, at, metrics)
+        seeds = d.get("seeds", cls.seeds)
+        if seeds not in SEED_MODES:
+            raise ConfigError("stats.seeds", seeds, " | ".join(SEED_MODES))
+        return cls(n_boot, seed, level, at, metrics, seeds)
 
 
 def _number(kind: type, setting: str, value: Any, allowed: str) -> Any:
@@ -147,6 +152,14 @@ def _per_run(cells: Sequence[Cell]) -> dict[str, tuple[Any, float, list[tuple[st
     return out
 
 
+def _seed_key(seed: str) -> tuple[int, float, str]:
+    """Seeds in numeric order where they are numbers (``"2"`` before ``"10"``), else as text."""
+    try:
+        return (0, float(seed), "")
+    except ValueError:
+        return (1, 0.0, str(seed))
+
+
 def _missing(cells: Sequence[Cell]) -> str:
     for c in cells:
         if c.mean is None:
@@ -178,9 +191,11 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
                         paper_ref=_mean([c.paper for c in ref_cells]), paper_row=_mean([c.paper for c in row_cells]))
     ref_runs, row_runs = _per_run(ref_cells), _per_run(row_cells)
     both = {r.seed for r, _, _ in ref_runs.values()} & {r.seed for r, _, _ in row_runs.values()}
-    if both:  # compare seed with seed: only the seeds both rows ran
-        ref_runs = {k: v for k, v in ref_runs.items() if v[0].seed in both}
-        row_runs = {k: v for k, v in row_runs.items() if v[0].seed in both}
+    if both:  # compare seed with seed: only the seeds both rows ran, in the same order on both sides
+        ref_runs = {k: v for k, v in sorted(ref_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
+                    if v[0].seed in both}
+        row_runs = {k: v for k, v in sorted(row_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
+                    if v[0].seed in both}
     line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
     if not ref_runs or not row_runs:
         line.reason = _missing(ref_cells if not ref_runs else row_cells)
@@ -215,10 +230,11 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
                 line.reason = ("the runs compared were scored on different test pairs (data set or evaluation "
                                "settings differ), so no paired interval")
             else:
+                matched = [r.seed for r, _, _ in ref_runs.values()] == [r.seed for r, _, _ in row_runs.values()]
                 line.interval = paired_bootstrap(
                     np.stack([s.to_numpy() for s in vecs["ref"]]), np.stack([s.to_numpy() for s in vecs["row"]]),
                     first.index.get_level_values("scene"), n_boot=settings.n_boot, seed=settings.seed,
-                    level=settings.level)
+                    level=settings.level, seeds=settings.seeds if matched else "pool")
                 line.ours_diff = line.interval.diff
                 line.source = "; ".join(dict.fromkeys(wheres))
     line.verdict = verdict(line.paper_diff, line.interval)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Iterable
 
 from pcrcg.report.spec import LOWER_IS_BETTER, Column
+from pcrcg.report.stats import seed_rule_text
 from pcrcg.report.tables import Cell, FilledTable
 
 DASH = "—"
@@ -142,8 +143,8 @@ def _ordering_texts(line, notes: _Notes) -> list[str]:
 def orderings_intro(table: FilledTable) -> str:
     iv = next((ln.interval for ln in table.orderings if ln.interval is not None), None)
     how = (f"paired bootstrap {iv.level:.0%} interval over the test pairs ({iv.n_boot} resamples of the pairs "
-           f"within each scene, seed {iv.seed}; seeds pooled per pair, over the seeds both rows ran)" if iv is not None
-           else "paired bootstrap interval over the test pairs")
+           f"within each scene, seed {iv.seed}; {seed_rule_text([ln.interval for ln in table.orderings])})"
+           if iv is not None else "paired bootstrap interval over the test pairs")
     return ("Δ = row − reference, in points; ours: the difference of our means over seeds (± std of the per-seed "
             f"difference where both rows ran the same seeds); interval: {how}. Verdict: the paper's ordering "
             "*holds* (interval beyond 0 on the paper's side), is *reversed* (beyond 0 on the other side), or "

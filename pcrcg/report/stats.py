@@ -16,14 +16,18 @@ A fixed ``seed`` gives the same interval every time.
 
 Several seeds
 -------------
-Where several runs share a config except ``seed`` (one config hash per seed), each method's
-outcome of a pair is its mean over the seeds (:func:`pool_seeds`: the fraction of seeds that
-registered it) and the bootstrap resamples pairs of those pooled outcomes. The statistic is
-linear in the outcomes, so this is the same as resampling pairs once and averaging the seeds'
-recalls on the resampled pairs, and the point estimate is the mean over seeds of the recall.
-The interval is about test-pair sampling given the trained models: the spread between seeds
-(training randomness) is reported beside it as mean ± std over seeds (:func:`mean_std`), not
-folded into it (two or three seeds are too few to resample).
+Where several runs share a config except ``seed`` (one config hash per seed), the point estimate is the mean
+over seeds of the recall difference. With ``seeds="resample"`` (the report's default, ``stats.seeds``) and the
+two methods' runs given seed against seed (``a[i]`` and ``b[i]`` trained with the same seed, two or more
+seeds), each replicate first draws as many seeds as there are, with replacement (the same draw for both
+methods), then the pairs within scenes, and recomputes the difference averaged over the drawn seeds: a
+two-stage (seeds, then pairs) bootstrap, so that the interval covers training randomness as far as the seeds
+show it, not only test-pair sampling. With two or three seeds the seed stage has few distinct draws and the
+interval is coarse and wide where the seeds disagree, which is the point: a difference that one seed shows
+and another reverses is not resolved. With ``seeds="pool"`` (or seeds that are not matched) each method's
+outcome of a pair is its mean over its seeds (:func:`pool_seeds`: the fraction of seeds that registered it)
+and only the pairs are resampled: the interval is then about test-pair sampling given the trained models.
+One seed: both are the plain paired bootstrap above (the same replicates).
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ SEED = 0
 HOLDS = "holds"
 REVERSED = "reversed"
 NOISE = "within noise"
+SEED_MODES = ("resample", "pool")
 PAPER_TIE = "tie in the paper"
 NO_PAPER = "not in the paper"
 VERDICTS = (HOLDS, REVERSED, NOISE, PAPER_TIE, NO_PAPER)
@@ -58,6 +63,8 @@ class Interval:
     n_scenes: int
     n_boot: int
     seed: int
+    n_seeds: int = 1  # seeds behind each side (per pair, pooled or resampled)
+    seed_mode: str = "pool"  # resample: seeds drawn seed against seed, then pairs; pool: seeds averaged per pair
 
     @property
     def excludes_zero(self) -> bool:
@@ -111,15 +118,21 @@ def paired_bootstrap(
     seed: int = SEED,
     level: float = LEVEL,
     scene_average: bool = True,
+    seeds: str = "pool",
 ) -> Interval:
     """Bootstrap interval of ``recall(b) - recall(a)`` over the same pairs (see module docstring).
 
-    a, b: (P,) outcomes of the two methods on the same pairs (or (runs, P): seeds, pooled);
-    scenes: (P,) scene of each pair (strata). Pairs resampled within scenes when
-    ``scene_average``, over all pairs otherwise.
+    a, b: (P,) outcomes of the two methods on the same pairs, or (S, P): S seeds each; scenes: (P,) scene of
+    each pair (strata). Pairs resampled within scenes when ``scene_average``, over all pairs otherwise.
+    ``seeds``: ``resample`` (a[i] and b[i] are one seed's runs: seeds drawn too, when both have the same
+    S >= 2 rows) or ``pool`` (each method's seeds averaged per pair first).
     """
+    if seeds not in SEED_MODES:
+        raise ValueError(f"seeds must be one of {SEED_MODES}, got {seeds!r}")
     scenes = np.asarray(scenes)
     P = len(scenes)
+    a2, b2 = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    matched = seeds == "resample" and a2.ndim == 2 and a2.shape == b2.shape and a2.shape[0] >= 2
     a = _as_outcomes(a, P, "a")
     b = _as_outcomes(b, P, "b")
     if P == 0:
@@ -133,14 +146,31 @@ def paired_bootstrap(
     d = b - a  # the statistic is linear: the difference of recalls is the recall of the differences
     groups = _groups(scenes) if scene_average else [np.arange(P)]
     per_group = np.empty((n_boot, len(groups)))
+    if matched:  # (n_boot, P): each replicate's differences averaged over its draw of seeds
+        S = a2.shape[0]
+        counts = np.stack([np.bincount(row, minlength=S) for row in rng.integers(0, S, size=(n_boot, S))])
+        d_rep = (counts / S) @ (b2 - a2)
     for k, g in enumerate(groups):
         draw = rng.integers(0, len(g), size=(n_boot, len(g)))
-        per_group[:, k] = d[g][draw].mean(axis=1)
+        if matched:
+            per_group[:, k] = np.take_along_axis(d_rep[:, g], draw, axis=1).mean(axis=1)
+        else:
+            per_group[:, k] = d[g][draw].mean(axis=1)
     reps = 100.0 * per_group.mean(axis=1)
     point = 100.0 * float(np.mean([d[g].mean() for g in groups]))
     tail = 100.0 * (1.0 - level) / 2.0
     lo, hi = np.percentile(reps, [tail, 100.0 - tail])
-    return Interval(point, float(lo), float(hi), float(level), P, len(groups), n_boot, int(seed))
+    n_seeds = a2.shape[0] if matched else (min(a2.shape[0], b2.shape[0]) if a2.ndim == 2 and b2.ndim == 2 else 1)
+    return Interval(point, float(lo), float(hi), float(level), P, len(groups), n_boot, int(seed), int(n_seeds),
+                    "resample" if matched else "pool")
+
+
+def seed_rule_text(intervals: Sequence[Interval | None]) -> str:
+    """How the seeds entered these intervals, for a report's intro."""
+    if any(iv is not None and iv.seed_mode == "resample" for iv in intervals):
+        return ("where both rows ran the same two or more seeds, the seeds drawn too (seed against seed), then the "
+                "pairs, so that the interval covers the spread between seeds; else the seeds pooled per pair")
+    return "seeds pooled per pair, over the seeds both rows ran"
 
 
 def mean_std(values: Sequence[float]) -> tuple[float, float, int]:
