@@ -468,6 +468,17 @@ def geometry_only(data: Mapping[str, Any]) -> bool:
     return data.get("method", "learned") == "learned" and not color_enabled(data)
 
 
+# classical methods that draw nothing at random: Open3D's ICP and ColorICP are deterministic
+SEEDLESS_METHODS = ("icp", "color_icp")
+
+
+def seed_independent(data: Mapping[str, Any]) -> bool:
+    """Whether nothing a run computes reads ``seed``: ICP / ColorICP started from the identity (no model, no
+    random draw). Its runs are one run whatever the seed (the run's hash leaves ``seed`` out), and the report
+    compares it with every seed of another row."""
+    return data.get("method", "learned") in SEEDLESS_METHODS and data.get("icp_init", "identity") == "identity"
+
+
 def needs_training(cfg: DictConfig | Mapping[str, Any]) -> bool:
     """Whether a run trains a model: a learned method, or ICP started from a learned model's estimate."""
     method = cfg.get("method", "learned")

@@ -40,7 +40,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.config import CONF_DIR, color_enabled, geometry_only, needs_training, preflight, validate_run_config
+from pcrcg.config import (CONF_DIR, color_enabled, geometry_only, needs_training, preflight, seed_independent,
+                          validate_run_config)
 from pcrcg.device import resolve_device
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
@@ -276,9 +277,15 @@ def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_
     """A run's identity: :func:`config_hash` of its config (``exclude``: ``HASH_EXCLUDE`` for the run,
     ``TRAIN_HASH_EXCLUDE`` for its training), without the ``COLOR_ONLY`` settings when it trains or
     evaluates a geometry-only learned model (``method`` learned or left out; a classical method such as
-    ``sift_dlt`` reads ``matcher2d``, so its runs keep them)."""
+    ``sift_dlt`` reads ``matcher2d``, so its runs keep them), and without ``seed`` when nothing the run
+    computes reads it (:func:`pcrcg.config.seed_independent`: ICP / ColorICP from the identity), so that a
+    sweep over seeds runs it once."""
     data = to_plain(cfg)
-    return config_hash(without(data, COLOR_ONLY) if geometry_only(data) else data, exclude)
+    if geometry_only(data):
+        data = without(data, COLOR_ONLY)
+    if seed_independent(data):
+        data = without(data, ("seed",))
+    return config_hash(data, exclude)
 
 
 def train_key(cfg: DictConfig) -> str:
@@ -526,6 +533,8 @@ def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dic
         "label": method_label(data),
         "overrides": " ".join(job.overrides),
     }
+    if seed_independent(data):
+        tags["seed_independent"] = "true"
     if job.sweep_dir:
         tags["sweep_dir"] = job.sweep_dir
     return tags

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import numpy as np
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
@@ -166,3 +167,47 @@ def test_every_finding_selects_the_job_that_sweeps_findings_sh_runs_for_it():
         for sel in finding.rows:
             assert match(_jobs(sel.experiment, sel.job), sel.where).all(), \
                 (finding.claim, sel.name, sel.job, dict(sel.where))
+
+
+class _FakeSource:
+    """Per-pair outcomes by run id (index (scene, i, j)), as pcrcg.report.outcomes.OutcomeSource gives them."""
+
+    def __init__(self, vectors: dict[str, np.ndarray]):
+        self.vectors = vectors
+
+    def outcomes(self, run_id, key, logged):
+        from pcrcg.report.outcomes import Outcomes
+
+        v = self.vectors[run_id]
+        idx = pd.MultiIndex.from_arrays([["s0"] * len(v), list(range(len(v))), list(range(1, len(v) + 1))],
+                                        names=("scene", "i", "j"))
+        return Outcomes(pd.Series(v, index=idx), source="fake")
+
+
+def test_a_run_that_reads_no_seed_is_compared_with_every_seed_of_the_other_row():
+    """ICP from the identity ran once (seed 0, or a run before the seed_independent tag: its params say so);
+    ICP from the learned estimate ran seeds 0 and 1: both seeds are compared, seed against that one run."""
+    from pcrcg.report.orderings import StatsSettings, check_orderings
+
+    spec = parse_specs({"icp": {"experiment": "icp_init", "columns": [{"benchmark": "3DLoMatch", "metric": "RR"}],
+                                "rows": [{"method": "ICP", "variant": "identity", "where": {"icp_init": "identity"}},
+                                         {"method": "ICP", "variant": "learned", "where": {"icp_init": "learned"}}],
+                                "compare": {"pairs": [["ICP identity", "ICP learned"]]}}})["icp"]
+    rng = np.random.default_rng(0)
+    base = (rng.random(300) < 0.1).astype(float)
+    vec = {"id0": base, "l0": np.maximum(base, rng.random(300) < 0.3), "l1": np.maximum(base, rng.random(300) < 0.2)}
+    rows = []
+    for rid, init, seed, start in (("id0", "identity", 0, 1), ("l0", "learned", 0, 2), ("l1", "learned", 1, 3)):
+        rows.append({"run_id": rid, "experiment": "icp_init", "status": "FINISHED", "start_time": start,
+                     "tags.profile": "cpu", "tags.config_hash": rid, "tags.code_version": "c", "params.method": "icp",
+                     "params.icp_init": init, "params.seed": str(seed), "metrics.3DLoMatch/rr": 100 * vec[rid].mean()})
+    filled = fill_table(spec, pd.DataFrame(rows), load_paper(), {"icp_init": "cpu"})
+    assert filled.cell(spec.rows[0], spec.columns[0]).runs[0].seedless
+    assert not filled.cell(spec.rows[1], spec.columns[0]).runs[0].seedless
+    filled.orderings = check_orderings(filled, _FakeSource(vec), StatsSettings(), keep_empty=True)
+    (line,) = filled.orderings
+    assert line.n_seeds == 2 and line.ref_runs == ["id0"] and line.row_runs == ["l0", "l1"]
+    assert line.interval.seed_mode == "resample" and line.interval.n_seeds == 2
+    expected = 100 * np.mean([vec["l0"].mean() - base.mean(), vec["l1"].mean() - base.mean()])
+    assert line.ours_diff == pytest.approx(expected) and line.interval.lo > 0
+    assert line.ours_std == pytest.approx(100 * abs(vec["l0"].mean() - vec["l1"].mean()) / np.sqrt(2))

@@ -353,3 +353,27 @@ def test_a_geometry_only_run_leaves_the_color_settings_out_of_its_identity():
     # the plain config hash (what the 2D pretraining and the benchmarks use) is unchanged by this rule
     cfg = load_run_config(["profile=tiny", "features=none"])
     assert config_hash(cfg) != run_hash(cfg)
+
+
+def test_a_run_that_reads_no_seed_is_one_run_whatever_the_seed():
+    """ICP / ColorICP from the identity draw nothing at random: seed=0,1,2 is one run (its hash leaves the
+    seed out, its tag says so), while a learned model, ICP from a learned estimate and FPFH (RANSAC) keep it."""
+    from pcrcg.config import load_run_config, seed_independent
+    from pcrcg.pipeline import JobInfo, _tags
+    from pcrcg.tracking.hashing import to_plain
+
+    def h(*overrides: str) -> str:
+        return run_hash(load_run_config(["profile=tiny", *overrides]))
+
+    for method in ("icp", "color_icp"):
+        assert h(f"method={method}", "seed=1") == h(f"method={method}", "seed=0")
+        assert h(f"method={method}", "icp_init=learned", "seed=1") != h(f"method={method}", "icp_init=learned")
+    for other in ("method=fpfh", "method=learned", "method=sift_dlt"):
+        assert h(other, "seed=1") != h(other, "seed=0"), other
+    assert seed_independent({"method": "icp"}) and not seed_independent({})
+    assert not seed_independent({"method": "icp", "icp_init": "learned"})
+    cfg = load_run_config(["profile=tiny", "method=icp"])
+    job = JobInfo(Path("."), Path("."), overrides=["method=icp"])
+    assert _tags(cfg, to_plain(cfg), "h", job)["seed_independent"] == "true"
+    cfg = load_run_config(["profile=tiny", "method=fpfh"])
+    assert "seed_independent" not in _tags(cfg, to_plain(cfg), "h", job)

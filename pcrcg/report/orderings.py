@@ -23,7 +23,7 @@ have one place), one :class:`OrderingLine`:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -152,6 +152,24 @@ def _per_run(cells: Sequence[Cell]) -> dict[str, tuple[Any, float, list[tuple[st
     return out
 
 
+def _broadcast(ref_runs: dict, row_runs: dict) -> tuple[dict, dict]:
+    """A side whose runs do not depend on the seed (``RunRef.seedless``: ICP from the identity) stands for every
+    seed of the other side: its newest run, once per seed (keys ``<run id>#<seed>``), so that the other side's
+    seeds are all compared, seed against the same run."""
+    def seedless(runs: dict) -> bool:
+        return bool(runs) and all(v[0].seedless for v in runs.values())
+
+    def spread(runs: dict, seeds: list[str]) -> dict:
+        ref, value, kv = list(runs.values())[-1]
+        return {f"{ref.run_id}#{s}": (replace(ref, seed=s), value, kv) for s in seeds}
+
+    if seedless(ref_runs) and row_runs and not seedless(row_runs):
+        return spread(ref_runs, [v[0].seed for v in row_runs.values()]), row_runs
+    if seedless(row_runs) and ref_runs and not seedless(ref_runs):
+        return ref_runs, spread(row_runs, [v[0].seed for v in ref_runs.values()])
+    return ref_runs, row_runs
+
+
 def _seed_key(seed: str) -> tuple[int, float, str]:
     """Seeds in numeric order where they are numbers (``"2"`` before ``"10"``), else as text."""
     try:
@@ -189,14 +207,15 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
     row_cells = [table.cell(comp.row, c) for c in row_cols]
     line = OrderingLine(comp, metric, bench, variant, at,
                         paper_ref=_mean([c.paper for c in ref_cells]), paper_row=_mean([c.paper for c in row_cells]))
-    ref_runs, row_runs = _per_run(ref_cells), _per_run(row_cells)
+    ref_runs, row_runs = _broadcast(_per_run(ref_cells), _per_run(row_cells))
     both = {r.seed for r, _, _ in ref_runs.values()} & {r.seed for r, _, _ in row_runs.values()}
     if both:  # compare seed with seed: only the seeds both rows ran, in the same order on both sides
         ref_runs = {k: v for k, v in sorted(ref_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
                     if v[0].seed in both}
         row_runs = {k: v for k, v in sorted(row_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
                     if v[0].seed in both}
-    line.ref_runs, line.row_runs = list(ref_runs), list(row_runs)
+    line.ref_runs = list(dict.fromkeys(v[0].run_id for v in ref_runs.values()))
+    line.row_runs = list(dict.fromkeys(v[0].run_id for v in row_runs.values()))
     if not ref_runs or not row_runs:
         line.reason = _missing(ref_cells if not ref_runs else row_cells)
         line.verdict = verdict(line.paper_diff, None)
@@ -215,8 +234,8 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
         vecs: dict[str, list] = {"ref": [], "row": []}
         wheres: list[str] = []
         for side, runs in (("ref", ref_runs), ("row", row_runs)):
-            for rid, (_, _, kv) in runs.items():
-                s, where = _vector(source, rid, kv)
+            for ref, _, kv in runs.values():
+                s, where = _vector(source, ref.run_id, kv)
                 if s is None:
                     line.reason = where
                     break

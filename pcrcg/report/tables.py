@@ -45,6 +45,7 @@ class RunRef:
     git_sha: str
     profile: str
     seed: str
+    seedless: bool = False  # nothing the run computes reads its seed (pcrcg.config.seed_independent)
 
     def short(self) -> str:
         return (f"run {self.run_id[:8]} · hash {self.config_hash[:8]} · git {self.git_sha[:7]}"
@@ -136,7 +137,17 @@ def _get(rec: pd.Series, col: str, default: str = "?") -> str:
 
 def _ref(rec: pd.Series) -> RunRef:
     return RunRef(str(rec["run_id"]), _get(rec, "tags.config_hash"), _get(rec, "tags.git_sha"),
-                  _get(rec, "tags.profile"), _get(rec, "params.seed"))
+                  _get(rec, "tags.profile"), _get(rec, "params.seed"), _seedless(rec))
+
+
+def _seedless(rec: pd.Series) -> bool:
+    """The run's ``seed_independent`` tag; a run logged before the tag: the same rule on its params."""
+    from pcrcg.config import seed_independent
+
+    if _get(rec, "tags.seed_independent", "") == "true":
+        return True
+    method, init = _get(rec, "params.method", ""), _get(rec, "params.icp_init", "")
+    return bool(method and init) and seed_independent({"method": method, "icp_init": init})
 
 
 def _paper_value(paper: pd.DataFrame, table: str, row: Row, col: Column) -> float | None:
