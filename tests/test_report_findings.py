@@ -210,6 +210,7 @@ def test_files_index_and_code_versions(report):
     assert set(df["finding"]) == set(range(1, 9))
     row = df[(df["finding"] == 1) & (df["at"] == "5000")].iloc[0]
     assert row["verdict"] == HOLDS and row["n_seeds"] == 3 and row["ci_low"] > 0 and row["real_verdict"] == HOLDS
+    assert row["ci_seeds"] == "resample (3)"
     assert row["claim_verdict"] == HOLDS and row["code_versions"] == "v1"
     assert len(row["compared_run_ids"].split(";")) == 3
     md = (out / "findings.md").read_text()

@@ -584,6 +584,7 @@ def test_tables_csv_and_index_show_the_orderings(report):
     df = pd.read_csv(out / "main_results_orderings.csv")
     row = df[(df["benchmark"] == "3DLoMatch") & (df["metric"] == "RR") & (df["at"] == "5000")].iloc[0]
     assert row["verdict"] == HOLDS and row["n_boot"] == 2000 and row["ci_low"] > 0 and row["n_seeds"] == 2
+    assert row["ci_seeds"] == "resample (2)"
     assert set(row["row_run_ids"].split(";")) == {report["ids"][("PCR-CG", 0)], report["ids"][("PCR-CG", 1)]}
     index = (out / "README.md").read_text()
     assert "| window_size | window_size, main_results | cpu | 4 | 15/30 | 2 / 2 / 2 |" in index
