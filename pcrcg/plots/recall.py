@@ -72,8 +72,13 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
     keys = list(panels)
     sizes = sorted({c.col.n_points for cells in panels.values() for c in cells})
     pos = {n: i for i, n in enumerate(sizes)}
-    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys) + 2.8, 3.6), squeeze=False)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    # the legend's width from its longest label (about 0.06 inch a character at 7 pt), beside the panels
+    longest = max((len(f"{r.text} (paper)") for r in table.spec.rows), default=0)
+    legend_in = max(2.8, 0.06 * longest + 0.3)
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys) + legend_in, 3.6), squeeze=False)
+    # one color per row: matplotlib's 10-color cycle, 20 colors (tab20) for longer tables
+    colors = (plt.rcParams["axes.prop_cycle"].by_key()["color"] if len(table.spec.rows) <= 10
+              else [plt.get_cmap("tab20")(k) for k in range(20)])
     for ax, key in zip(axes[0], keys):
         cells = panels[key]
         for i, row in enumerate(table.spec.rows):
@@ -93,7 +98,7 @@ def plot_table_recall(table: FilledTable, path: Path) -> Path | None:
         ax.set_title(key[1], fontsize=10)
         ax.grid(alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
-    legend_w = 2.8 / fig.get_figwidth()
+    legend_w = legend_in / fig.get_figwidth()
     if handles:
         fig.legend(handles, labels, loc="center right", fontsize=7, frameon=False)
     title, lines = _wrap(table.spec.title, fig.get_figwidth(), 9)
