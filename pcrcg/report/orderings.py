@@ -170,6 +170,11 @@ def _broadcast(ref_runs: dict, row_runs: dict) -> tuple[dict, dict]:
     return ref_runs, row_runs
 
 
+def _seeds_in_order(runs: dict, seeds: set[str]) -> dict:
+    """The runs of ``seeds``, in seed order."""
+    return {k: v for k, v in sorted(runs.items(), key=lambda kv: _seed_key(kv[1][0].seed)) if v[0].seed in seeds}
+
+
 def _seed_key(seed: str) -> tuple[int, float, str]:
     """Seeds in numeric order where they are numbers (``"2"`` before ``"10"``), else as text."""
     try:
@@ -210,10 +215,7 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
     ref_runs, row_runs = _broadcast(_per_run(ref_cells), _per_run(row_cells))
     both = {r.seed for r, _, _ in ref_runs.values()} & {r.seed for r, _, _ in row_runs.values()}
     if both:  # compare seed with seed: only the seeds both rows ran, in the same order on both sides
-        ref_runs = {k: v for k, v in sorted(ref_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
-                    if v[0].seed in both}
-        row_runs = {k: v for k, v in sorted(row_runs.items(), key=lambda kv: _seed_key(kv[1][0].seed))
-                    if v[0].seed in both}
+        ref_runs, row_runs = _seeds_in_order(ref_runs, both), _seeds_in_order(row_runs, both)
     line.ref_runs = list(dict.fromkeys(v[0].run_id for v in ref_runs.values()))
     line.row_runs = list(dict.fromkeys(v[0].run_id for v in row_runs.values()))
     if not ref_runs or not row_runs:
@@ -233,9 +235,12 @@ def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant
     else:
         vecs: dict[str, list] = {"ref": [], "row": []}
         wheres: list[str] = []
+        loaded: dict[str, tuple] = {}  # a run that stands for several seeds (_broadcast) is read once
         for side, runs in (("ref", ref_runs), ("row", row_runs)):
             for ref, _, kv in runs.values():
-                s, where = _vector(source, ref.run_id, kv)
+                if ref.run_id not in loaded:
+                    loaded[ref.run_id] = _vector(source, ref.run_id, kv)
+                s, where = loaded[ref.run_id]
                 if s is None:
                     line.reason = where
                     break

@@ -338,8 +338,7 @@ def ordering_rows(table: FilledTable) -> Iterable[dict]:
             "ours_diff_std": _r(ln.ours_std) if ln.n_seeds > 1 else "", "n_seeds": ln.n_seeds,
             "ci_low": _r(iv.lo) if iv else "", "ci_high": _r(iv.hi) if iv else "", "level": iv.level if iv else "",
             "n_boot": iv.n_boot if iv else "", "boot_seed": iv.seed if iv else "",
-            # how the seeds entered the interval: resample (seed against seed, then pairs) or pool
-            "ci_seeds": f"{iv.seed_mode} ({iv.n_seeds})" if iv else "",
+            "ci_seeds": iv.seeds_label if iv else "",
             "n_pairs": iv.n_pairs if iv else "", "n_scenes": iv.n_scenes if iv else "",
             "verdict": ln.verdict or "", "reason": ln.reason or "", "source": ln.source,
             "reference_run_ids": ";".join(ln.ref_runs), "row_run_ids": ";".join(ln.row_runs),

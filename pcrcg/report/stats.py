@@ -67,6 +67,11 @@ class Interval:
     seed_mode: str = "pool"  # resample: seeds drawn seed against seed, then pairs; pool: seeds averaged per pair
 
     @property
+    def seeds_label(self) -> str:
+        """How the seeds entered the interval, for the CSV files: ``resample (2)``, ``pool (1)``."""
+        return f"{self.seed_mode} ({self.n_seeds})"
+
+    @property
     def excludes_zero(self) -> bool:
         return self.lo > 0 or self.hi < 0
 

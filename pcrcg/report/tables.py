@@ -239,8 +239,8 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             other = other[match(other, {**row.where, **row.same_as.where})]
             if not other.empty:
                 row_runs = pd.concat([row_runs, other])
-            done = int((other["status"] == "FINISHED").sum()) if "status" in other.columns else 0
-            shared.append(f"{row.text}: also the runs of {row.same_as.text} ({done} finished), the same config")
+            n_other = int((other["status"] == "FINISHED").sum()) if "status" in other.columns else 0
+            shared.append(f"{row.text}: also the runs of {row.same_as.text} ({n_other} finished), the same config")
         for col in spec.columns:
             cell = Cell(row, col, _paper_value(paper, spec.paper_table, row, col))
             cells.append(cell)
