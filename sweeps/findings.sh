@@ -9,10 +9,11 @@
 #   ONLY=^main_results sweeps/findings.sh # only the jobs that match this extended regex (finding 1 first)
 #   OUT=DIR sweeps/findings.sh            # where the report goes (default reports/findings-<profile>/)
 #
-# The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`), so a finding
-# added to conf/report.yaml is swept here. Resumable: a run skips its config when a FINISHED run of the
-# same config and code exists, so relaunching (after a crash, over several sittings) runs only what is
-# missing; the lanes share trained models (checkpoints/, under a file lock) and one MLflow store.
+# The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`: the claims' rows, then
+# the targets'), so a finding or target added to conf/report.yaml is swept here. Resumable: a run skips
+# its config when a FINISHED run of the same config and code exists, so relaunching (after a crash, over
+# several sittings) runs only what is missing; the lanes share trained models (checkpoints/, under a file
+# lock) and one MLflow store.
 # The jobs run seed by seed (every job with seed=0, then seed=1, ...), each in the spec's order; each lane
 # takes the next one as soon as it is free (the cpu profile trains with one torch thread).
 set -u
@@ -55,8 +56,11 @@ if [ -d "$SHARED" ]; then
     step "$L" "$PYTHON" -m pcrcg.prepare data=threedmatch data.source.fragments_dir="$SHARED/real-3dmatch-fragments" \
       data.source.rgbd_dir="$SHARED/real-rgbd" data.root="$REAL_ROOT"
   fi
-  # one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others
+  # one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others;
+  # the claims' experiments only (the targets' rows, e.g. FPFH + RANSAC, have no real-scene column)
+  REAL_EXPERIMENTS=",$("$PYTHON" -m pcrcg.report.findings --real-experiments),"
   for e in ${EXPERIMENTS//,/ }; do
+    [[ $REAL_EXPERIMENTS == *",$e,"* ]] || continue
     step "$L" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$e]" data.root="$REAL_ROOT" \
       name=real-redkitchen profile="$PROFILE"
   done

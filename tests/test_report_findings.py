@@ -35,21 +35,24 @@ def _cfg(out_dir: Path, uri: str, **extra) -> dict:
     return cfg
 
 
-def _pairs_csv(path: Path, ok: dict[str, np.ndarray]) -> float:
-    """Write a per-pair file in the evaluation's format (every pair counted, the same outcome at every N);
-    returns the protocol's recall of these outcomes."""
-    rows = [{"scene": s, "i": k, "j": k + 2, "n_points": n, "counted": 1, "present": 1, "registered": int(v),
-             "error": "", "rre": "", "rte": "", "inlier_ratio": ""}
-            for n in N for s, vals in ok.items() for k, v in enumerate(vals)]
+def _pairs_csv(path: Path, ok: dict[str, np.ndarray], sizes=N) -> float:
+    """Write a per-pair file in the evaluation's format (every pair counted, the same outcome at every N of
+    ``sizes``; ``(None,)``: one estimate per pair, as FPFH's); returns the protocol's recall of these outcomes."""
+    rows = [{"scene": s, "i": k, "j": k + 2, "n_points": "" if n is None else n, "counted": 1, "present": 1,
+             "registered": int(v), "error": "", "rre": "", "rte": "", "inlier_ratio": ""}
+            for n in sizes for s, vals in ok.items() for k, v in enumerate(vals)]
     path.parent.mkdir(parents=True, exist_ok=True)
     pd.DataFrame(rows, columns=list(PAIR_COLUMNS)).to_csv(path, index=False)
     return recall(np.concatenate(list(ok.values())).astype(float), [s for s, v in ok.items() for _ in v])
 
 
-def _run(tr, work: Path, name: str, params: dict, tags: dict, ok: dict, real_ok: dict | None = None) -> str:
-    """A FINISHED run registering the pairs ``ok`` (3DLoMatch, every N), and ``real_ok`` on the real scene."""
+def _run(tr, work: Path, name: str, params: dict, tags: dict, ok: dict, real_ok: dict | None = None,
+         bench: str = "3DLoMatch", sizes=N) -> str:
+    """A FINISHED run registering the pairs ``ok`` (``bench``, every N of ``sizes``; ``(None,)``: its one
+    estimate, ``<bench>/rr``), and ``real_ok`` on the real scene."""
     folder = work / name.replace(" ", "_").replace("=", "-")
-    metrics = {f"3DLoMatch/rr_{n}": _pairs_csv(folder / "pairs" / "3DLoMatch.csv", ok) for n in N}
+    rr = _pairs_csv(folder / "pairs" / f"{bench}.csv", ok, sizes)
+    metrics = {f"{bench}/rr" if n is None else f"{bench}/rr_{n}": rr for n in sizes}
     if real_ok is not None:
         rr = _pairs_csv(folder / PREFIX / "pairs" / "3DLoMatch.csv", real_ok)
         metrics.update({f"{PREFIX}/3DLoMatch/rr_{n}": rr for n in N})
@@ -120,7 +123,7 @@ def report(tmp_path_factory):
 
 def _lines(report, number: int, comparison: str | None = None, at=5000):
     f = report["result"].findings
-    return [ln for ln in f.lines if ln.finding.number == number and ln.ours.at == at
+    return [ln for ln in f.lines if ln.finding.number == number and not ln.finding.is_target and ln.ours.at == at
             and (comparison is None or ln.comparison == comparison)]
 
 
@@ -140,7 +143,11 @@ def test_the_spec_has_the_papers_eight_claims_and_their_differences():
     assert ("main_results", "features=deep") in spec.jobs()
     assert ("projection", "features=deep encoder2d=pri3d projection=explicit") not in spec.jobs()
     assert ("views", "views=2") not in spec.jobs()
-    assert len(spec.jobs()) == len(set(spec.jobs())) == 17
+    assert len(spec.jobs()) == len(set(spec.jobs())) == 18  # 17 for the claims, FPFH + RANSAC for the target
+    [target] = spec.targets
+    assert target.margin == 10 and target.benchmark == "3DMatch" and target.label == "T1"
+    assert [s.single for s in target.rows] == [True, False] and spec.jobs()[-1] == ("sift_dlt", "method=fpfh")
+    assert "sift_dlt" in spec.experiments and "sift_dlt" not in spec.real_experiments
 
 
 def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
@@ -206,9 +213,10 @@ def test_a_row_reads_another_experiments_runs_of_the_same_config(report):
 
 def test_files_index_and_code_versions(report):
     out = report["out"]
-    df = pd.read_csv(out / "findings.csv")
-    assert set(df["finding"]) == set(range(1, 9))
-    row = df[(df["finding"] == 1) & (df["at"] == "5000")].iloc[0]
+    df = pd.read_csv(out / "findings.csv", dtype={"finding": str})
+    assert set(df["finding"]) == {str(k) for k in range(1, 9)} | {"T1"}
+    assert set(df.loc[df["finding"] == "T1", "verdict"]) == {NOT_RUN}  # the store has no 3DMatch runs
+    row = df[(df["finding"] == "1") & (df["at"] == "5000")].iloc[0]
     assert row["verdict"] == HOLDS and row["n_seeds"] == 3 and row["ci_low"] > 0 and row["real_verdict"] == HOLDS
     assert row["ci_seeds"] == "resample (3)"
     assert row["claim_verdict"] == HOLDS and row["code_versions"] == "v1"
@@ -250,7 +258,7 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
                          timeout=120, check=True).stdout
     runs = [ln for ln in out.splitlines() if " -m pcrcg.run " in ln]
     spec = load_findings()
-    for f in spec.claims:
+    for f in spec.all:  # the claims' rows and the targets' (FPFH + RANSAC)
         for s in f.rows:
             for seed in (0, 1, 2):
                 want = f"+experiment={s.experiment} profile=cpu runtime.report_on_end=false {s.job} seed={seed} -m"
@@ -262,7 +270,7 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     evals = [ln for ln in out.splitlines() if "-m pcrcg.evaluate mode=tracked" in ln]
     assert [ln.split("experiments=[")[1].split("]")[0] for ln in evals] == [
         "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init"]
-    assert all("name=real-redkitchen" in ln for ln in evals)
+    assert all("name=real-redkitchen" in ln for ln in evals)  # not sift_dlt: the target has no real-scene column
     only = subprocess.run(["bash", "sweeps/findings.sh"], cwd=ROOT, env={**env, "ONLY": "^main_results"},
                           capture_output=True, text=True, timeout=120, check=True).stdout
     assert [ln.split("experiments=[")[1].split("]")[0] for ln in only.splitlines()
@@ -270,7 +278,7 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     assert only.strip().splitlines()[-1].endswith("tables=[main_results] out_dir=reports/findings-cpu")
     assert out.strip().splitlines()[-1].endswith(
         "-m pcrcg.report profile=cpu tables=[main_results,projection,views,backbone_2d,window_size,geotransformer,"
-        "icp_init] out_dir=reports/findings-cpu")
+        "icp_init,sift_dlt] out_dir=reports/findings-cpu")
     assert not (tmp_path / "logs").exists()  # a dry run writes nothing
 
 
@@ -313,10 +321,71 @@ def test_the_identity_rule_picks_the_runs_and_the_findings_name_their_code(tmp_p
     _run(tr, tmp_path, "PCR-CG seed=0 again", {"seed": 0, "encoder2d.name": "pri3d"},
          {"label": "PCR-CG", "code_version": "B"}, _base(rng, SCENES, 0.9))
     result = generate_report(_cfg(tmp_path / "out", uri, identity=identity), base_dir=tmp_path)
-    [line] = [ln for ln in result.findings.lines if ln.finding.number == 1 and ln.ours.at == 5000]
+    [line] = [ln for ln in result.findings.lines if ln.finding.number == 1 and not ln.finding.is_target and ln.ours.at == 5000]
     # under config_and_code PCR-CG has seed 0 only, so Predator is compared on seed 0 too (seed with seed)
     assert len(line.ours.row_runs) == n_runs and len(line.ours.ref_runs) == n_runs
     assert line.ours.n_seeds == (0 if n_runs == 1 else 2)  # a std only where both rows ran two or more seeds
     assert (" ± " in ours_text(line.ours)) == (n_runs == 2)
     md = (tmp_path / "out" / "findings.md").read_text()
     assert codes in md and f"identity={identity}" in md
+
+
+def _target_store(root: Path, gap: float) -> str:
+    """Predator on the generated 3DMatch (seeds 0, 1; every N) and FPFH + RANSAC (seed 0; one estimate per pair),
+    Predator registering every pair FPFH does and ``gap`` of each scene's pairs more."""
+    from pcrcg.tracking.tracker import RunTracker
+    from pcrcg.tracking.store import ensure_store
+
+    uri = f"sqlite:///{root}/mlflow.db"
+    ensure_store(uri)
+    rng = np.random.default_rng(11)
+    scenes = {"kitchen": 60, "office": 40}
+    fpfh = _base(rng, scenes, 0.4)
+    _run(RunTracker(uri, "sift_dlt"), root / "work", "fpfh seed=0", {"seed": 0, "method": "fpfh"}, {"label": "FPFH"},
+         fpfh, bench="3DMatch", sizes=(None,))
+    main = RunTracker(uri, "main_results")
+    for seed in (0, 1):
+        _run(main, root / "work", f"Predator seed={seed}", {"seed": seed}, {"label": "Predator"},
+             _more(rng, fpfh, gap), bench="3DMatch")
+    return uri
+
+
+@pytest.mark.parametrize("gap, margin, want", [(0.35, 10, "met"), (0.35, 60, "missed"), (0.1, 10, NOT_RESOLVED)])
+def test_a_target_is_met_or_missed_against_its_margin_with_one_estimate_per_pair(tmp_path, gap, margin, want):
+    """The profile's target: Predator (every N) against FPFH + RANSAC's one estimate per pair, by a margin.
+    Predator's seed 1 is not compared (FPFH ran seed 0 only: seed against seed)."""
+    from pcrcg.report.findings import MET, MISSED, target_verdict  # noqa: F401
+
+    uri = _target_store(tmp_path, gap)
+    cfg = _cfg(tmp_path / "out", uri)
+    cfg["findings"]["targets"][0]["margin"] = margin
+    result = generate_report(cfg, base_dir=tmp_path)
+    f = result.findings
+    [target] = f.spec.targets
+    lines = [ln for ln in f.lines if ln.finding is target]
+    assert [ln.ours.at for ln in lines] == [5000, "mean"]
+    for ln in lines:
+        assert ln.verdict == want and ln.ours.interval is not None and ln.ours.interval.n_pairs == 100
+        assert ln.ours.ref_runs and len(ln.ours.row_runs) == 1  # seed 0 against seed 0
+        assert ln.real is None and ln.ours.ours_diff == pytest.approx(100 * gap, abs=1.5)
+        assert ln.where.endswith("(FPFH + RANSAC: its one estimate per pair)")
+    assert f.claim_verdict(target) == want
+    md = (tmp_path / "out" / "findings.md").read_text()
+    assert "## Targets of the profile" in md and f"| T1. {target.claim} | Predator − FPFH + RANSAC |" in md
+    assert f"| ≥ +{margin:.1f} | +" in md
+    df = pd.read_csv(tmp_path / "out" / "findings.csv", dtype={"finding": str})
+    assert list(df.loc[df["finding"] == "T1", "margin"]) == [margin, margin]
+    assert r"Target $\Delta$" in (tmp_path / "out" / "findings.tex").read_text()
+
+
+def test_bad_targets_name_the_setting():
+    raw = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").findings, resolve=True)
+    for change, setting in ((lambda t: t.update(margin=-1), r"targets\[0\]\.margin"),
+                            (lambda t: t["rows"][1].update(n_points=None), r"targets\[0\]\.compare"),
+                            (lambda t: t["rows"][0].update(n_points=5000), r"targets\[0\]\.rows\[0\]\.n_points"),
+                            (lambda t: t["rows"][0].pop("where"), r"targets\[0\]\.rows\[0\]\.where")):
+        bad = OmegaConf.to_container(OmegaConf.create(raw))
+        change(bad["targets"][0])
+        with pytest.raises(ConfigError, match=setting):
+            parse_findings(bad)
+    assert parse_findings(raw).targets[0].rows[0].paper_table == ""  # a target's row needs no paper entry

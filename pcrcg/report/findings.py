@@ -19,6 +19,12 @@ The real scene (``findings.real``, e.g. ``real-redkitchen``): the same selection
 metrics ``<real>/<benchmark>/rr_<N>`` and per-pair artifacts ``<real>/pairs/<benchmark>.csv`` that
 ``python -m pcrcg.evaluate mode=tracked name=<real>`` logs on them; "—" where no run has them.
 
+The profile's own targets (``findings.targets``, e.g. geometry-only Predator >= FPFH + RANSAC + 10 points
+on generated 3DMatch) are tested the same way against a ``margin``: *met* when the interval clears the
+margin on the expected side, *missed* when it lies wholly short of it, else *not resolved*. A row with
+``n_points: null`` is its one estimate per pair (FPFH + RANSAC samples no N), compared with every sample
+size of the other row. Targets have no real-scene column and no paper number.
+
 ``python -m pcrcg.report.findings --jobs`` prints the jobs that run every row (``sweeps/findings.sh``).
 """
 
@@ -34,7 +40,8 @@ from typing import Any, Iterable, Mapping, Sequence
 import pandas as pd
 
 from pcrcg.errors import ConfigError
-from pcrcg.report.orderings import MEAN, OrderingLine, StatsSettings, check_orderings
+from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_orderings, compare_columns,
+                                    select_columns)
 from pcrcg.report.spec import Column, Comparison, Row, TableSpec, run_command
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
 from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
@@ -42,6 +49,8 @@ from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
 NOT_RESOLVED = "not resolved"
 NOT_RUN = "not run"
+MET = "met"
+MISSED = "missed"
 EXPECT = {"higher": 1, "lower": -1}
 DASH = "—"
 
@@ -54,9 +63,10 @@ class Selection:
     experiment: str
     where: Mapping[str, Any]
     job: str
-    paper_table: str
-    method: str
+    paper_table: str = ""
+    method: str = ""
     variant: str = ""
+    single: bool = False  # n_points: null: its one estimate per pair, against every sample size of the other row
 
     def row(self) -> Row:
         return Row(method=self.method, variant=self.variant, label=self.name, where=dict(self.where),
@@ -77,10 +87,20 @@ class Finding:
     expect: str
     rows: tuple[Selection, ...]
     compare: tuple[tuple[str, str], ...]
+    margin: float | None = None  # a target of the profile (findings.targets); None: a claim of the paper
 
     @property
     def sign(self) -> int:
         return EXPECT[self.expect]
+
+    @property
+    def is_target(self) -> bool:
+        return self.margin is not None
+
+    @property
+    def label(self) -> str:
+        """``3`` for a claim, ``T1`` for a target."""
+        return f"T{self.number}" if self.is_target else str(self.number)
 
     def selection(self, name: str) -> Selection:
         return next(s for s in self.rows if s.name == name)
@@ -92,29 +112,47 @@ class FindingsSpec:
     real: str | None = None
     real_root: str = "data/real-redkitchen"
     seeds: tuple[int, ...] = (0, 1, 2)
+    targets: tuple[Finding, ...] = ()
+
+    @property
+    def all(self) -> tuple[Finding, ...]:
+        """The claims, then the targets."""
+        return self.claims + self.targets
 
     @property
     def experiments(self) -> list[str]:
+        """Every experiment a row reads (claims and targets)."""
+        return list(dict.fromkeys(s.experiment for f in self.all for s in f.rows))
+
+    @property
+    def real_experiments(self) -> list[str]:
+        """The experiments of the claims' rows: those evaluated on the real scene."""
         return list(dict.fromkeys(s.experiment for f in self.claims for s in f.rows))
 
     def jobs(self) -> list[tuple[str, str]]:
-        """Unique ``(experiment, overrides)`` jobs that run every row, in the claims' order."""
-        return list(dict.fromkeys((s.experiment, s.job) for f in self.claims for s in f.rows))
+        """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order."""
+        return list(dict.fromkeys((s.experiment, s.job) for f in self.all for s in f.rows))
 
     def real_command(self) -> str:
-        return (f"python -m pcrcg.evaluate mode=tracked experiments=[{','.join(self.experiments)}] "
+        return (f"python -m pcrcg.evaluate mode=tracked experiments=[{','.join(self.real_experiments)}] "
                 f"data.root={self.real_root} name={self.real}")
 
 
-def _selection(raw: Mapping[str, Any], where: str) -> Selection:
-    for key in ("name", "experiment", "where", "paper"):
+def _selection(raw: Mapping[str, Any], where: str, target: bool = False) -> Selection:
+    for key in ("name", "experiment", "where") + (() if target else ("paper",)):
         if not raw.get(key):
-            raise ConfigError(f"{where}.{key}", raw.get(key), "set for every row of a finding")
-    paper = raw["paper"]
-    if not isinstance(paper, Mapping) or not paper.get("table") or not paper.get("method"):
+            raise ConfigError(f"{where}.{key}", raw.get(key), f"set for every row of a {'target' if target else 'finding'}")
+    if "n_points" in raw and raw["n_points"] is not None:
+        raise ConfigError(f"{where}.n_points", raw["n_points"],
+                          "null (the row's one estimate per pair), or leave it out (the finding's sizes)")
+    paper = raw.get("paper") or {}
+    if not target and (not isinstance(paper, Mapping) or not paper.get("table") or not paper.get("method")):
         raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv")
+    if not isinstance(paper, Mapping):
+        raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv, or leave it out")
     return Selection(str(raw["name"]), str(raw["experiment"]), dict(raw["where"]), str(raw.get("job") or ""),
-                     str(paper["table"]), str(paper["method"]), str(paper.get("variant") or ""))
+                     str(paper.get("table") or ""), str(paper.get("method") or ""), str(paper.get("variant") or ""),
+                     single="n_points" in raw)
 
 
 def _sizes(raw: Any, where: str) -> tuple[int, ...] | None:
@@ -126,38 +164,52 @@ def _sizes(raw: Any, where: str) -> tuple[int, ...] | None:
         raise ConfigError(where, raw, "a list of sample sizes, or null") from None
 
 
+def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, target: bool) -> Finding:
+    """One claim (``findings.claims[k-1]``) or target (``findings.targets[k-1]``, with its ``margin``)."""
+    rows = tuple(_selection(r, f"{where}.rows[{i}]", target) for i, r in enumerate(c.get("rows") or []))
+    names = [r.name for r in rows]
+    if len(set(names)) != len(names) or len(rows) < 2:
+        raise ConfigError(f"{where}.rows", names, "at least two rows with different names")
+    compare = []
+    for item in c.get("compare") or []:
+        if not isinstance(item, (list, tuple)) or len(item) != 2 or any(str(n) not in names for n in item):
+            raise ConfigError(f"{where}.compare", item, "a pair [reference, compared] of row names: " + ", ".join(names))
+        if all(next(r for r in rows if r.name == str(n)).single for n in item):
+            raise ConfigError(f"{where}.compare", item, "at most one side with n_points: null")
+        compare.append((str(item[0]), str(item[1])))
+    if not compare:
+        raise ConfigError(f"{where}.compare", c.get("compare"), "at least one pair [reference, compared]")
+    expect = str(c.get("expect", raw.get("expect", "higher")))
+    if expect not in EXPECT:
+        raise ConfigError(f"{where}.expect", expect, " | ".join(EXPECT))
+    sizes = _sizes(c["n_points"] if "n_points" in c else raw.get("n_points"), f"{where}.n_points")
+    if sizes is None and any(r.single for r in rows):
+        raise ConfigError(f"{where}.n_points", None, "sample sizes for the rows that have them (a row has n_points: null)")
+    margin = None
+    if target:
+        margin = c.get("margin", 0.0)
+        if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
+            raise ConfigError(f"{where}.margin", margin, "a non-negative number of points, e.g. 10")
+        margin = float(margin)
+    text = c.get("target" if target else "claim") or f"{'target' if target else 'finding'} {k}"
+    return Finding(k, str(text), str(c.get("benchmark", raw.get("benchmark", "3DLoMatch"))),
+                   str(c.get("metric", raw.get("metric", "RR"))), sizes, expect, rows, tuple(compare), margin)
+
+
 def parse_findings(raw: Mapping[str, Any] | None) -> FindingsSpec | None:
     """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings)."""
     if not raw:
         return None
-    claims = []
-    for k, c in enumerate(raw.get("claims") or [], 1):
-        where = f"findings.claims[{k - 1}]"
-        rows = tuple(_selection(r, f"{where}.rows[{i}]") for i, r in enumerate(c.get("rows") or []))
-        names = [r.name for r in rows]
-        if len(set(names)) != len(names) or len(rows) < 2:
-            raise ConfigError(f"{where}.rows", names, "at least two rows with different names")
-        compare = []
-        for item in c.get("compare") or []:
-            if not isinstance(item, (list, tuple)) or len(item) != 2 or any(str(n) not in names for n in item):
-                raise ConfigError(f"{where}.compare", item, "a pair [reference, compared] of row names: " + ", ".join(names))
-            compare.append((str(item[0]), str(item[1])))
-        if not compare:
-            raise ConfigError(f"{where}.compare", c.get("compare"), "at least one pair [reference, compared]")
-        expect = str(c.get("expect", raw.get("expect", "higher")))
-        if expect not in EXPECT:
-            raise ConfigError(f"{where}.expect", expect, " | ".join(EXPECT))
-        sizes = c["n_points"] if "n_points" in c else raw.get("n_points")
-        bench = str(c.get("benchmark", raw.get("benchmark", "3DLoMatch")))
-        claims.append(Finding(k, str(c.get("claim") or f"finding {k}"), bench,
-                              str(c.get("metric", raw.get("metric", "RR"))), _sizes(sizes, f"{where}.n_points"),
-                              expect, rows, tuple(compare)))
+    claims = tuple(_finding(c, k, raw, f"findings.claims[{k - 1}]", False)
+                   for k, c in enumerate(raw.get("claims") or [], 1))
     if not claims:
         raise ConfigError("findings.claims", raw.get("claims"), "a list of claims (or findings: null)")
+    targets = tuple(_finding(c, k, raw, f"findings.targets[{k - 1}]", True)
+                    for k, c in enumerate(raw.get("targets") or [], 1))
     real = raw.get("real")
     seeds = tuple(int(s) for s in (raw.get("seeds") or ()))
-    return FindingsSpec(tuple(claims), str(real) if real else None, str(raw.get("real_root") or "data/real-redkitchen"),
-                        seeds)
+    return FindingsSpec(claims, str(real) if real else None, str(raw.get("real_root") or "data/real-redkitchen"),
+                        seeds, targets)
 
 
 # ---------------------------------------------------------------------------------------------- filling
@@ -184,8 +236,10 @@ class FindingLine:
     @property
     def where(self) -> str:
         at = self.ours.at
-        return " ".join(p for p in (self.finding.benchmark, self.finding.metric,
+        text = " ".join(p for p in (self.finding.benchmark, self.finding.metric,
                                     "" if at is None else ("mean over N" if at == MEAN else str(at))) if p)
+        single = [s.name for s in (self.reference, self.compared) if s.single]
+        return text + (f" ({single[0]}: its one estimate per pair)" if single else "")
 
 
 @dataclass
@@ -197,16 +251,18 @@ class FilledFindings:
     codes: dict[str, int] = field(default_factory=dict)
 
     def claim_verdict(self, finding: Finding, real: bool = False) -> str | None:
-        """The claim's verdict over its lines (module docstring); None when the real column is left out."""
+        """The claim's (or target's) verdict over its lines (module docstring); None when the real column is
+        left out."""
         vs = [ln.real_verdict if real else ln.verdict for ln in self.lines if ln.finding is finding]
         if real and (self.spec.real is None or all(v is None for v in vs)):
             return None
-        if REVERSED in vs:
-            return REVERSED
+        bad, good = (MISSED, MET) if finding.is_target else (REVERSED, HOLDS)
+        if bad in vs:
+            return bad
         if NOT_RUN in vs:
             return NOT_RUN
-        if vs and all(v == HOLDS for v in vs):
-            return HOLDS
+        if vs and all(v == good for v in vs):
+            return good
         return NOT_RESOLVED if vs else None
 
     def identity_text(self) -> str:
@@ -231,13 +287,52 @@ def line_verdict(sign: int, line: OrderingLine) -> str:
     return NOT_RESOLVED
 
 
+def target_verdict(sign: int, margin: float, line: OrderingLine) -> str:
+    """met / missed / not resolved / not run of one line of a target: the difference should be at least
+    ``margin`` points on the ``sign`` side (higher: ``lo > margin`` is met, ``hi < margin`` missed)."""
+    if not line.ref_runs or not line.row_runs:
+        return NOT_RUN
+    iv = line.interval
+    if iv is None:
+        return NOT_RESOLVED
+    lo, hi = (iv.lo, iv.hi) if sign > 0 else (-iv.hi, -iv.lo)
+    if lo > margin:
+        return MET
+    if hi < margin:
+        return MISSED
+    return NOT_RESOLVED
+
+
 def _table(finding: Finding, benchmark: str) -> TableSpec:
     rows = tuple(s.row() for s in finding.rows)
     by_name = {r.label: r for r in rows}
-    cols = tuple(Column(benchmark, finding.metric, n) for n in (finding.n_points or (None,)))
-    return TableSpec(name=f"finding {finding.number}", title=finding.claim, experiment=finding.rows[0].experiment,
+    sizes: tuple[int | None, ...] = finding.n_points or (None,)
+    if finding.n_points and any(s.single for s in finding.rows):
+        sizes += (None,)  # the column of the rows' one estimate per pair
+    cols = tuple(Column(benchmark, finding.metric, n) for n in sizes)
+    return TableSpec(name=f"finding {finding.label}", title=finding.claim, experiment=finding.rows[0].experiment,
                      rows=rows, columns=cols, paper_table="",
                      compare=tuple(Comparison(by_name[a], by_name[b]) for a, b in finding.compare))
+
+
+def _single_orderings(finding: Finding, table: FilledTable, benchmark: str, source: Any,
+                      settings: StatsSettings) -> list[OrderingLine]:
+    """The lines of a finding with a row of one estimate per pair (``n_points: null``): at each place of
+    ``stats.at``, that row's column against the other row's columns of the place (for the mean over N the
+    same outcome at every size, so its mean is that outcome)."""
+    sized = [c for c in table.spec.columns if c.n_points is not None]
+    one = next(c for c in table.spec.columns if c.n_points is None)
+    lines = []
+    for comp in table.spec.compare:
+        ref_single, row_single = (finding.selection(r.label).single for r in (comp.ref, comp.row))
+        for at in settings.at:
+            cols = select_columns(sized, at)
+            if not cols:
+                continue
+            lines.append(compare_columns(table, comp, finding.metric, benchmark, "", at,
+                                         [one] * len(cols) if ref_single else cols,
+                                         [one] * len(cols) if row_single else cols, source, settings))
+    return lines
 
 
 def _fill(finding: Finding, benchmark: str, runs: pd.DataFrame, paper: pd.DataFrame | None,
@@ -247,8 +342,11 @@ def _fill(finding: Finding, benchmark: str, runs: pd.DataFrame, paper: pd.DataFr
     if paper is not None:  # each row's number from its own paper table
         for cell in table.cells:
             sel = finding.selection(cell.row.label)
-            cell.paper = _paper_value(paper, sel.paper_table, cell.row, cell.col)
-    table.orderings = check_orderings(table, source, settings, keep_empty=True)
+            cell.paper = _paper_value(paper, sel.paper_table, cell.row, cell.col) if sel.paper_table else None
+    if finding.n_points and any(s.single for s in finding.rows):
+        table.orderings = _single_orderings(finding, table, benchmark, source, settings)
+    else:
+        table.orderings = check_orderings(table, source, settings, keep_empty=True)
     return table
 
 
@@ -270,15 +368,16 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
     """Every finding's lines from ``runs`` (the runs of ``spec.experiments``), see module docstring."""
     lines: list[FindingLine] = []
     used: set[str] = set()
-    for f in spec.claims:
+    for f in spec.all:
         ours = _fill(f, f.benchmark, runs, paper, profiles, identity, source, settings)
         real = (_fill(f, f"{spec.real}/{f.benchmark}", runs, None, profiles, identity, source, settings)
-                if spec.real else None)
+                if spec.real and not f.is_target else None)
         used |= {r.run_id for c in ours.cells for r in c.runs}
         real_lines = real.orderings if real is not None else [None] * len(ours.orderings)
         for o, r in zip(ours.orderings, real_lines):
             ref, row = f.selection(o.comparison.ref.label), f.selection(o.comparison.row.label)
-            fl = FindingLine(f, ref, row, o, r, verdict=line_verdict(f.sign, o))
+            fl = FindingLine(f, ref, row, o, r, verdict=(target_verdict(f.sign, f.margin, o) if f.margin is not None
+                                                         else line_verdict(f.sign, o)))
             if fl.verdict == NOT_RUN:
                 fl.note = _not_run_note(ours, ref, row, profiles, spec.seeds)
             elif o.interval is None:
@@ -335,12 +434,25 @@ class _Notes:
 
 
 def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list[str]:
-    claim = f"{fl.finding.number}. {fl.finding.claim}" if first else ""
-    out = [claim, fl.comparison, fl.where, _signed(fl.ours.paper_diff), ours_text(fl.ours), _interval(fl.ours),
-           fl.verdict + notes.mark(fl.note)]
+    claim = f"{fl.finding.label}. {fl.finding.claim}" if first else ""
+    target = fl.finding.margin
+    need = DASH if target is None else f"{'≥' if fl.finding.sign > 0 else '≤'} {_signed(fl.finding.sign * target)}"
+    out = [claim, fl.comparison, fl.where, need if target is not None else _signed(fl.ours.paper_diff),
+           ours_text(fl.ours), _interval(fl.ours), fl.verdict + notes.mark(fl.note)]
     if real:
         out += [ours_text(fl.real), _interval(fl.real), (fl.real_verdict or DASH) + notes.mark(fl.real_note)]
     return out
+
+
+def _split(filled: FilledFindings) -> tuple[list[FindingLine], list[FindingLine]]:
+    """The claims' lines and the targets' lines."""
+    return ([ln for ln in filled.lines if not ln.finding.is_target],
+            [ln for ln in filled.lines if ln.finding.is_target])
+
+
+TARGETS_INTRO = ("The profile's own targets (`findings.targets`), tested as the claims: Δ = compared − reference, "
+                 "the same intervals; *met* when the interval clears the target on its side, *missed* when it lies "
+                 "wholly short of it, else *not resolved*.")
 
 
 def intro(filled: FilledFindings) -> str:
@@ -376,12 +488,23 @@ def to_markdown(filled: FilledFindings, heading: str = "##") -> str:
     out += ["", "| Claim | Comparison | Where | Paper Δ | Ours Δ | 95% interval | Verdict |"
             + (f" {filled.spec.real} Δ | {filled.spec.real} interval | {filled.spec.real} verdict |" if real else ""),
             "|---|---|---|---:|---:|---:|---|" + ("---:|---:|---|" if real else "")]
+    claims, targets = _split(filled)
     seen: set[int] = set()
-    for fl in filled.lines:
+    for fl in claims:
         first = fl.finding.number not in seen
         seen.add(fl.finding.number)
         out.append("| " + " | ".join(_line_texts(fl, real, notes, first)) + " |")
     out.append("")
+    if targets:
+        out += [f"{heading}# Targets of the profile", "", TARGETS_INTRO, "",
+                "| Target | Comparison | Where | Target Δ | Ours Δ | 95% interval | Verdict |",
+                "|---|---|---|---:|---:|---:|---|"]
+        seen = set()
+        for fl in targets:
+            first = fl.finding.number not in seen
+            seen.add(fl.finding.number)
+            out.append("| " + " | ".join(_line_texts(fl, False, notes, first)) + " |")
+        out.append("")
     if notes.items:
         out += ["Notes:", ""] + [f"{i}. {n}" for i, n in enumerate(notes.items, 1)] + [""]
     out += [filled.identity_text(), ""]
@@ -400,12 +523,25 @@ def to_latex(filled: FilledFindings) -> str:
            f"\\caption{{The paper's findings, tested. {latex_escape(intro(filled).replace('*', '').replace('`', ''))}}}",
            r"\begin{tabular}{lll" + "r" * 3 + "l" + ("rrl" if real else "") + "}", r"\toprule",
            " & ".join(header) + r" \\", r"\midrule"]
+    claims, targets = _split(filled)
     seen: set[int] = set()
-    for fl in filled.lines:
+    for fl in claims:
         first = fl.finding.number not in seen
         seen.add(fl.finding.number)
         out.append(" & ".join(latex_escape(t) for t in _line_texts(fl, real, notes, first)) + r" \\")
-    out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    out += [r"\bottomrule", r"\end{tabular}"]
+    if targets:
+        out += [r"\par\medskip", latex_escape(TARGETS_INTRO.replace("*", "").replace("`", "")) + r"\par",
+                r"\begin{tabular}{lllrrrl}", r"\toprule",
+                " & ".join(["Target", "Comparison", "Where", r"Target $\Delta$", r"Ours $\Delta$", "Interval",
+                            "Verdict"]) + r" \\", r"\midrule"]
+        seen = set()
+        for fl in targets:
+            first = fl.finding.number not in seen
+            seen.add(fl.finding.number)
+            out.append(" & ".join(latex_escape(t) for t in _line_texts(fl, False, notes, first)) + r" \\")
+        out += [r"\bottomrule", r"\end{tabular}"]
+    out.append(r"\end{table}")
     out += ["% notes:"] + [f"% [{i}] {n}" for i, n in enumerate(notes.items, 1)]
     out.append(f"% {filled.identity_text()}")
     return "\n".join(out) + "\n"
@@ -415,7 +551,7 @@ CSV_FIELDS = ("finding", "claim", "claim_verdict", "comparison", "reference", "c
               "compared_experiment", "benchmark", "metric", "at", "expect", "paper_diff", "ours_diff", "ours_std",
               "n_seeds", "ci_low", "ci_high", "ci_seeds", "verdict", "note", "real", "real_ours_diff", "real_ours_std",
               "real_n_seeds", "real_ci_low", "real_ci_high", "real_verdict", "real_claim_verdict", "real_note",
-              "reference_run_ids", "compared_run_ids", "code_versions")
+              "reference_run_ids", "compared_run_ids", "code_versions", "margin")
 
 
 def _r(v: float | None) -> Any:
@@ -427,7 +563,7 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
     for fl in filled.lines:
         o, r = fl.ours, fl.real
         yield {
-            "finding": fl.finding.number, "claim": fl.finding.claim, "claim_verdict": filled.claim_verdict(fl.finding),
+            "finding": fl.finding.label, "claim": fl.finding.claim, "claim_verdict": filled.claim_verdict(fl.finding),
             "comparison": fl.comparison, "reference": fl.reference.name, "compared": fl.compared.name,
             "reference_experiment": fl.reference.experiment, "compared_experiment": fl.compared.experiment,
             "benchmark": fl.finding.benchmark, "metric": fl.finding.metric, "at": "" if o.at is None else o.at,
@@ -445,6 +581,7 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
             "real_verdict": fl.real_verdict or "", "real_claim_verdict": filled.claim_verdict(fl.finding, True) or "",
             "real_note": fl.real_note or "", "reference_run_ids": ";".join(o.ref_runs),
             "compared_run_ids": ";".join(o.row_runs), "code_versions": codes,
+            "margin": "" if fl.finding.margin is None else _r(fl.finding.margin),
         }
 
 
@@ -475,11 +612,14 @@ def load_findings(path: str | Path | None = None) -> FindingsSpec | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m pcrcg.report.findings --jobs | --experiments | --real-command``: what sweeps/findings.sh runs."""
+    """``python -m pcrcg.report.findings --jobs | --experiments | --real-experiments | --seeds``: what
+    sweeps/findings.sh runs."""
     p = argparse.ArgumentParser(prog="python -m pcrcg.report.findings", description=main.__doc__)
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--jobs", action="store_true", help="one job a line: <experiment> [overrides...]")
     what.add_argument("--experiments", action="store_true", help="the experiments, comma-separated")
+    what.add_argument("--real-experiments", action="store_true",
+                      help="the experiments evaluated on the real scene (the claims'), comma-separated")
     what.add_argument("--seeds", action="store_true", help="the seeds, comma-separated")
     p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
     args = p.parse_args(argv)
@@ -491,6 +631,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{exp} {job}".strip())
     elif args.experiments:
         print(",".join(spec.experiments))
+    elif args.real_experiments:
+        print(",".join(spec.real_experiments))
     else:
         print(",".join(str(s) for s in spec.seeds))
     return 0

@@ -122,7 +122,8 @@ def _groups(columns: Sequence[Column]) -> dict[tuple[str, str, str], list[Column
     return out
 
 
-def _select(cols: Sequence[Column], at: Any) -> list[Column]:
+def select_columns(cols: Sequence[Column], at: Any) -> list[Column]:
+    """The columns of the place ``at``: its sample size, every size for the mean over N, the unsized one for None."""
     if at is None:
         return [c for c in cols if c.n_points is None][:1]
     if at == MEAN:
@@ -134,7 +135,7 @@ def _select(cols: Sequence[Column], at: Any) -> list[Column]:
 def _places(cols: Sequence[Column], settings: StatsSettings) -> list[Any]:
     if all(c.n_points is None for c in cols):
         return [None]
-    return [a for a in settings.at if _select(cols, a)]
+    return [a for a in settings.at if select_columns(cols, a)]
 
 
 def _mean(vals: Sequence[float | None]) -> float | None:
@@ -206,8 +207,11 @@ def _vector(source: Any, rid: str, kv: Sequence[tuple[str, float]]):
     return (first if len(series) == 1 else sum(series[1:], first) / len(series)), where
 
 
-def _line(table: FilledTable, comp: Comparison, metric: str, bench: str, variant: str, at: Any,
-          ref_cols: Sequence[Column], row_cols: Sequence[Column], source: Any, settings: StatsSettings) -> OrderingLine:
+def compare_columns(table: FilledTable, comp: Comparison, metric: str, bench: str, variant: str, at: Any,
+                    ref_cols: Sequence[Column], row_cols: Sequence[Column], source: Any,
+                    settings: StatsSettings) -> OrderingLine:
+    """One line: ``comp.row`` at ``row_cols`` against ``comp.ref`` at ``ref_cols`` (the same length; each
+    side's mean over its columns), at the place ``at`` (see module docstring)."""
     ref_cells = [table.cell(comp.ref, c) for c in ref_cols]
     row_cells = [table.cell(comp.row, c) for c in row_cols]
     line = OrderingLine(comp, metric, bench, variant, at,
@@ -284,12 +288,12 @@ def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | N
             else:
                 ref_group = cols
             for at in _places(cols, settings):
-                row_cols = _select(cols, at)
-                by_n = {c.n_points: c for c in _select(ref_group, at)}
+                row_cols = select_columns(cols, at)
+                by_n = {c.n_points: c for c in select_columns(ref_group, at)}
                 ref_cols = [by_n.get(c.n_points) for c in row_cols]
                 if not row_cols or any(c is None for c in ref_cols):
                     continue
-                line = _line(table, comp, metric, bench, variant, at, ref_cols, row_cols,  # type: ignore[arg-type]
+                line = compare_columns(table, comp, metric, bench, variant, at, ref_cols, row_cols,  # type: ignore[arg-type]
                              source, settings)
                 if not keep_empty and line.paper_diff is None and (not line.ref_runs or not line.row_runs):
                     continue  # neither the paper nor we have both numbers: nothing to say
