@@ -389,3 +389,23 @@ def test_bad_targets_name_the_setting():
         with pytest.raises(ConfigError, match=setting):
             parse_findings(bad)
     assert parse_findings(raw).targets[0].rows[0].paper_table == ""  # a target's row needs no paper entry
+
+
+def test_the_findings_list_the_seeds_behind_each_job_and_the_command_for_the_missing(report):
+    f = report["result"].findings
+    by_job = {(r.experiment, r.job): r for r in f.row_seeds}
+    assert len(by_job) == len(f.spec.jobs())  # every job once, however many rows it is
+    pcrcg = by_job[("main_results", "features=deep")]
+    assert pcrcg.names == ["PCR-CG", "deep/explicit", "Pri3D", "11x11"] and pcrcg.seeds == {"0", "1", "2"}
+    assert pcrcg.missing(f.spec.seeds) == []
+    views = by_job[("views", "views=1")]
+    assert views.seeds == {"0"} and views.missing(f.spec.seeds) == [1, 2]
+    assert by_job[("sift_dlt", "method=fpfh")].missing(f.spec.seeds) == [0, 1, 2]
+    missing = {(r.experiment, r.job): m for r, m in f.missing_runs()}
+    assert ("main_results", "features=deep") not in missing and missing[("views", "views=1")] == [1, 2]
+    assert missing[("geotransformer", "features=deep")] == [0, 1, 2]
+    md = (report["out"] / "findings.md").read_text()
+    assert "### Seeds behind the rows" in md
+    assert ("| 1 view | `views` views=1 | 0 | 1, 2 | `python -m pcrcg.run +experiment=views views=1 profile=cpu "
+            "seed=1,2 -m` |") in md
+    assert "| PCR-CG, deep/explicit, Pri3D, 11x11 | `main_results` features=deep | 0, 1, 2 | — | — |" in md

@@ -243,12 +243,36 @@ class FindingLine:
 
 
 @dataclass
+class RowSeeds:
+    """The seeds behind one job of the findings (rows that share it: main_results' PCR-CG is five rows)."""
+
+    experiment: str
+    job: str
+    names: list[str]
+    seeds: set[str] = field(default_factory=set)  # seeds of the runs the findings count
+    seedless: bool = False  # its runs do not read the seed: one stands for every seed
+
+    def missing(self, wanted: Sequence[int]) -> list[int]:
+        return [] if self.seedless else [s for s in wanted if str(s) not in self.seeds]
+
+    def seeds_text(self) -> str:
+        if self.seedless:
+            return "any (the run does not read its seed)"
+        return ", ".join(sorted(self.seeds, key=lambda x: (len(x), x))) or DASH
+
+
+@dataclass
 class FilledFindings:
     spec: FindingsSpec
     lines: list[FindingLine]
     profiles: Mapping[str, str | None]
     identity: str = DEFAULT_IDENTITY
     codes: dict[str, int] = field(default_factory=dict)
+    row_seeds: list[RowSeeds] = field(default_factory=list)
+
+    def missing_runs(self) -> list[tuple[RowSeeds, list[int]]]:
+        """Each job with seeds of ``spec.seeds`` that no counted run has, and those seeds."""
+        return [(r, m) for r in self.row_seeds if (m := r.missing(self.spec.seeds))]
 
     def claim_verdict(self, finding: Finding, real: bool = False) -> str | None:
         """The claim's (or target's) verdict over its lines (module docstring); None when the real column is
@@ -368,8 +392,16 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
     """Every finding's lines from ``runs`` (the runs of ``spec.experiments``), see module docstring."""
     lines: list[FindingLine] = []
     used: set[str] = set()
+    row_seeds: dict[tuple[str, str], RowSeeds] = {}
     for f in spec.all:
         ours = _fill(f, f.benchmark, runs, paper, profiles, identity, source, settings)
+        for sel in f.rows:
+            rs = row_seeds.setdefault((sel.experiment, sel.job), RowSeeds(sel.experiment, sel.job, []))
+            if sel.name not in rs.names:
+                rs.names.append(sel.name)
+            refs = [r for c in ours.cells if c.row.label == sel.name for r in c.runs]
+            rs.seeds |= {r.seed for r in refs}
+            rs.seedless |= bool(refs) and all(r.seedless for r in refs)
         real = (_fill(f, f"{spec.real}/{f.benchmark}", runs, None, profiles, identity, source, settings)
                 if spec.real and not f.is_target else None)
         used |= {r.run_id for c in ours.cells for r in c.runs}
@@ -396,7 +428,8 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
                         fl.real_note = f"no interval on {spec.real}: {r.reason}"
             lines.append(fl)
     codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
-    return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()})
+    return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()},
+                          list(row_seeds.values()))
 
 
 # ---------------------------------------------------------------------------------------------- rendering
@@ -448,6 +481,22 @@ def _split(filled: FilledFindings) -> tuple[list[FindingLine], list[FindingLine]
     """The claims' lines and the targets' lines."""
     return ([ln for ln in filled.lines if not ln.finding.is_target],
             [ln for ln in filled.lines if ln.finding.is_target])
+
+
+def seeds_markdown(filled: FilledFindings, heading: str = "###") -> list[str]:
+    """The seeds behind each job of the findings and the command that runs the missing ones (the sweep's progress)."""
+    if not filled.row_seeds:
+        return []
+    wanted = ", ".join(str(s) for s in filled.spec.seeds) or DASH
+    out = [f"{heading} Seeds behind the rows", "",
+           f"Seeds the findings ask for: {wanted} (`findings.seeds`). A job that is several rows is run once.", "",
+           "| Rows | Job | Seeds run | Missing | Command for the missing seeds |", "|---|---|---|---|---|"]
+    for r in filled.row_seeds:
+        missing = r.missing(filled.spec.seeds)
+        cmd = f"`{run_command(r.experiment, r.job, filled.profiles.get(r.experiment), missing)}`" if missing else DASH
+        out.append(f"| {', '.join(r.names)} | `{r.experiment}` {r.job} | {r.seeds_text()} | "
+                   f"{', '.join(str(s) for s in missing) or DASH} | {cmd} |")
+    return out + [""]
 
 
 TARGETS_INTRO = ("The profile's own targets (`findings.targets`), tested as the claims: Δ = compared − reference, "
@@ -505,6 +554,7 @@ def to_markdown(filled: FilledFindings, heading: str = "##") -> str:
             seen.add(fl.finding.number)
             out.append("| " + " | ".join(_line_texts(fl, False, notes, first)) + " |")
         out.append("")
+    out += seeds_markdown(filled, heading + "#")
     if notes.items:
         out += ["Notes:", ""] + [f"{i}. {n}" for i, n in enumerate(notes.items, 1)] + [""]
     out += [filled.identity_text(), ""]
