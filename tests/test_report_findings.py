@@ -219,6 +219,9 @@ def test_files_index_and_code_versions(report):
     row = df[(df["finding"] == "1") & (df["at"] == "5000")].iloc[0]
     assert row["verdict"] == HOLDS and row["n_seeds"] == 3 and row["ci_low"] > 0 and row["real_verdict"] == HOLDS
     assert row["ci_seeds"] == "resample (3)"
+    by_seed = dict(kv.split(":") for kv in row["ours_by_seed"].split(";"))
+    assert list(by_seed) == ["0", "1", "2"]  # seed against seed, in seed order; their mean is ours
+    assert np.mean([float(v) for v in by_seed.values()]) == pytest.approx(row["ours_diff"], abs=0.06)
     assert row["claim_verdict"] == HOLDS and row["code_versions"] == "v1"
     assert len(row["compared_run_ids"].split(";")) == 3
     md = (out / "findings.md").read_text()

@@ -449,6 +449,13 @@ def ours_text(line: OrderingLine | None) -> str:
     return text
 
 
+def by_seed_text(line: OrderingLine | None) -> str:
+    """``0:+1.2;1:-0.5``: the difference of each seed both rows ran (seed against seed), in seed order."""
+    if line is None or not line.by_seed:
+        return ""
+    return ";".join(f"{k}:{_signed(v)}" for k, v in line.by_seed.items())
+
+
 def _interval(line: OrderingLine | None) -> str:
     iv = None if line is None else line.interval
     return DASH if iv is None else f"[{_signed(iv.lo)}, {_signed(iv.hi)}]"
@@ -601,7 +608,7 @@ CSV_FIELDS = ("finding", "claim", "claim_verdict", "comparison", "reference", "c
               "compared_experiment", "benchmark", "metric", "at", "expect", "paper_diff", "ours_diff", "ours_std",
               "n_seeds", "ci_low", "ci_high", "ci_seeds", "verdict", "note", "real", "real_ours_diff", "real_ours_std",
               "real_n_seeds", "real_ci_low", "real_ci_high", "real_verdict", "real_claim_verdict", "real_note",
-              "reference_run_ids", "compared_run_ids", "code_versions", "margin")
+              "reference_run_ids", "compared_run_ids", "code_versions", "margin", "ours_by_seed")
 
 
 def _r(v: float | None) -> Any:
@@ -632,6 +639,7 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
             "real_note": fl.real_note or "", "reference_run_ids": ";".join(o.ref_runs),
             "compared_run_ids": ";".join(o.row_runs), "code_versions": codes,
             "margin": "" if fl.finding.margin is None else _r(fl.finding.margin),
+            "ours_by_seed": by_seed_text(o),
         }
 
 

@@ -95,6 +95,7 @@ class OrderingLine:
     ours_diff: float | None = None
     ours_std: float | None = None
     n_seeds: int = 0  # seeds both rows ran (behind ours_std)
+    by_seed: dict[str, float] = field(default_factory=dict)  # seed -> row − ref of that seed's runs (seeds both ran)
     interval: Interval | None = None
     verdict: str | None = None
     reason: str | None = None
@@ -232,6 +233,7 @@ def compare_columns(table: FilledTable, comp: Comparison, metric: str, bench: st
     by_seed_ref = {r.seed: v for r, v, _ in ref_runs.values()}
     by_seed_row = {r.seed: v for r, v, _ in row_runs.values()}
     common = [s for s in by_seed_row if s in by_seed_ref]
+    line.by_seed = {s: by_seed_row[s] - by_seed_ref[s] for s in common}
     if len(common) > 1:
         _, line.ours_std, line.n_seeds = mean_std([by_seed_row[s] - by_seed_ref[s] for s in common])
     if source is None:
