@@ -629,7 +629,7 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
             "ours_std": _r(o.ours_std) if o.n_seeds > 1 else "", "n_seeds": o.n_seeds,
             "ci_low": _r(o.interval.lo) if o.interval else "", "ci_high": _r(o.interval.hi) if o.interval else "",
             "ci_seeds": o.interval.seeds_label if o.interval else "",
-            "verdict": fl.verdict, "note": fl.note or "", "real": filled.spec.real or "",
+            "verdict": fl.verdict, "note": fl.note or "", "real": "" if fl.finding.is_target else filled.spec.real or "",
             "real_ours_diff": _r(r.ours_diff) if r is not None and r.ref_runs and r.row_runs else "",
             "real_ours_std": _r(r.ours_std) if r is not None and r.n_seeds > 1 else "",
             "real_n_seeds": r.n_seeds if r is not None else "",
