@@ -229,6 +229,8 @@ def test_files_index_and_code_versions(report):
     assert "identity=config_and_code" in md
     index = (out / "README.md").read_text()
     assert "## The paper's findings, tested ([md](findings.md)" in index
+    assert (out / "findings.png").stat().st_size > 10_000 and "](findings.png)" in md  # the forest plot
+    assert "](findings.png)" in index
     tex = (out / "findings.tex").read_text()
     assert r"PCR-CG $-$ Predator & 3DLoMatch RR 5000" in tex
 

@@ -1,5 +1,6 @@
 """Figures, in one place: the run's and the tables' recall against N (:mod:`pcrcg.plots.recall`), the
-color-coverage figure (:mod:`pcrcg.plots.coverage`), pictures of a data set (:mod:`pcrcg.plots.data`;
+color-coverage figure (:mod:`pcrcg.plots.coverage`), the findings' forest plot (:mod:`pcrcg.plots.findings`),
+pictures of a data set (:mod:`pcrcg.plots.data`;
 :mod:`pcrcg.data.stats` draws its side-by-side fragments with the helpers below).
 
 The helpers every figure uses: :func:`pyplot` (matplotlib on the Agg backend, imported only when a

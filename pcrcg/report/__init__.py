@@ -251,9 +251,11 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
                                      "(or no runs yet)"))
     out.append("")
     if result.findings is not None:
+        from pcrcg.report.findings import FIGURE
         from pcrcg.report.findings import to_markdown as findings_markdown
 
-        out.append(findings_markdown(result.findings).replace(
+        figure = FIGURE if (result.out_dir / FIGURE).is_file() else None
+        out.append(findings_markdown(result.findings, figure=figure).replace(
             "## The paper's findings, tested", "## The paper's findings, tested ([md](findings.md), "
             "[tex](findings.tex), [csv](findings.csv))", 1))
     for name, table in result.tables.items():

@@ -528,7 +528,8 @@ def intro(filled: FilledFindings) -> str:
             + real)
 
 
-def to_markdown(filled: FilledFindings, heading: str = "##") -> str:
+def to_markdown(filled: FilledFindings, heading: str = "##", figure: str | None = None) -> str:
+    """The findings' section; ``figure``: the forest plot's file name, shown under the claims' table."""
     real = filled.spec.real is not None
     notes = _Notes()
     profiles = sorted({str(p) for e in filled.spec.experiments if (p := filled.profiles.get(e))})
@@ -551,6 +552,8 @@ def to_markdown(filled: FilledFindings, heading: str = "##") -> str:
         seen.add(fl.finding.number)
         out.append("| " + " | ".join(_line_texts(fl, real, notes, first)) + " |")
     out.append("")
+    if figure:
+        out += [f"![The findings: our differences with their intervals and seeds, the paper's]({figure})", ""]
     if targets:
         out += [f"{heading}# Targets of the profile", "", TARGETS_INTRO, "",
                 "| Target | Comparison | Where | Target Δ | Ours Δ | 95% interval | Verdict |",
@@ -643,16 +646,23 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
         }
 
 
+FIGURE = "findings.png"
+
+
 def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
-    """``findings.md``, ``findings.tex`` and ``findings.csv`` in ``out_dir``; returns them."""
+    """``findings.md``, ``findings.tex``, ``findings.csv`` and the forest plot ``findings.png`` in ``out_dir``;
+    returns them."""
+    from pcrcg.plots.findings import plot_findings
+
     md, tex, path = out_dir / "findings.md", out_dir / "findings.tex", out_dir / "findings.csv"
-    md.write_text(to_markdown(filled))
+    fig = plot_findings(filled, out_dir / FIGURE)
+    md.write_text(to_markdown(filled, figure=FIGURE if fig is not None else None))
     tex.write_text(to_latex(filled))
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
         w.writeheader()
         w.writerows(csv_rows(filled))
-    return [md, tex, path]
+    return [md, tex, path] + ([fig] if fig is not None else [])
 
 
 # ---------------------------------------------------------------------------------------------- jobs (sweeps/findings.sh)
