@@ -126,8 +126,10 @@ class FindingsSpec:
 
     @property
     def real_experiments(self) -> list[str]:
-        """The experiments of the claims' rows: those evaluated on the real scene."""
-        return list(dict.fromkeys(s.experiment for f in self.claims for s in f.rows))
+        """The experiments evaluated on the real scene: the claims' rows', and those of targets on a benchmark of
+        the real data set (``<real>/<benchmark>``)."""
+        on_real = [f for f in self.targets if self.real and f.benchmark.startswith(f"{self.real}/")]
+        return list(dict.fromkeys(s.experiment for f in self.claims + tuple(on_real) for s in f.rows))
 
     def jobs(self) -> list[tuple[str, str]]:
         """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order."""
