@@ -384,7 +384,8 @@ def test_a_target_is_met_or_missed_against_its_margin_with_one_estimate_per_pair
     df = pd.read_csv(tmp_path / "out" / "findings.csv", dtype={"finding": str})
     assert list(df.loc[df["finding"] == "T1", "margin"]) == [margin, margin]
     assert df.loc[df["finding"] == "T1", "real"].isna().all()  # no real-scene column for a target
-    assert r"Target $\Delta$" in (tmp_path / "out" / "findings.tex").read_text()
+    tex = (tmp_path / "out" / "findings.tex").read_text()
+    assert r"Target $\Delta$" in tex and rf"$\geq$ +{margin:.1f}" in tex and "≥" not in tex
 
 
 def test_bad_targets_name_the_setting():

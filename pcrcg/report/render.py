@@ -210,7 +210,8 @@ _LATEX_ESC = {"&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r
 
 def latex_escape(text: str) -> str:
     s = "".join(_LATEX_ESC.get(ch, ch) for ch in text)
-    return s.replace("±", r"$\pm$").replace("Δ", r"$\Delta$").replace("−", "$-$").replace(DASH, "--")
+    return (s.replace("±", r"$\pm$").replace("Δ", r"$\Delta$").replace("−", "$-$").replace("≥", r"$\geq$")
+            .replace("≤", r"$\leq$").replace(DASH, "--"))
 
 
 def _header_levels(cols: list[Column]) -> list[tuple[str, list[str]]]:
