@@ -492,6 +492,16 @@ def _split(filled: FilledFindings) -> tuple[list[FindingLine], list[FindingLine]
             [ln for ln in filled.lines if ln.finding.is_target])
 
 
+def _rows(lines: Sequence[FindingLine], real: bool, notes: _Notes) -> list[list[str]]:
+    """Each line's cells (:func:`_line_texts`), the claim or target named on its first line only."""
+    seen: set[int] = set()
+    rows = []
+    for fl in lines:
+        rows.append(_line_texts(fl, real, notes, fl.finding.number not in seen))
+        seen.add(fl.finding.number)
+    return rows
+
+
 def seeds_markdown(filled: FilledFindings, heading: str = "###") -> list[str]:
     """The seeds behind each job of the findings and the command that runs the missing ones (the sweep's progress)."""
     if not filled.row_seeds:
@@ -548,24 +558,14 @@ def to_markdown(filled: FilledFindings, heading: str = "##", figure: str | None 
             + (f" {filled.spec.real} Δ | {filled.spec.real} interval | {filled.spec.real} verdict |" if real else ""),
             "|---|---|---|---:|---:|---:|---|" + ("---:|---:|---|" if real else "")]
     claims, targets = _split(filled)
-    seen: set[int] = set()
-    for fl in claims:
-        first = fl.finding.number not in seen
-        seen.add(fl.finding.number)
-        out.append("| " + " | ".join(_line_texts(fl, real, notes, first)) + " |")
-    out.append("")
+    out += ["| " + " | ".join(cells) + " |" for cells in _rows(claims, real, notes)] + [""]
     if figure:
         out += [f"![The findings: our differences with their intervals and seeds, the paper's]({figure})", ""]
     if targets:
         out += [f"{heading}# Targets of the profile", "", TARGETS_INTRO, "",
                 "| Target | Comparison | Where | Target Δ | Ours Δ | 95% interval | Verdict |",
                 "|---|---|---|---:|---:|---:|---|"]
-        seen = set()
-        for fl in targets:
-            first = fl.finding.number not in seen
-            seen.add(fl.finding.number)
-            out.append("| " + " | ".join(_line_texts(fl, False, notes, first)) + " |")
-        out.append("")
+        out += ["| " + " | ".join(cells) + " |" for cells in _rows(targets, False, notes)] + [""]
     out += seeds_markdown(filled, heading + "#")
     if notes.items:
         out += ["Notes:", ""] + [f"{i}. {n}" for i, n in enumerate(notes.items, 1)] + [""]
@@ -586,22 +586,14 @@ def to_latex(filled: FilledFindings) -> str:
            r"\begin{tabular}{lll" + "r" * 3 + "l" + ("rrl" if real else "") + "}", r"\toprule",
            " & ".join(header) + r" \\", r"\midrule"]
     claims, targets = _split(filled)
-    seen: set[int] = set()
-    for fl in claims:
-        first = fl.finding.number not in seen
-        seen.add(fl.finding.number)
-        out.append(" & ".join(latex_escape(t) for t in _line_texts(fl, real, notes, first)) + r" \\")
+    out += [" & ".join(latex_escape(t) for t in cells) + r" \\" for cells in _rows(claims, real, notes)]
     out += [r"\bottomrule", r"\end{tabular}"]
     if targets:
         out += [r"\par\medskip", latex_escape(TARGETS_INTRO.replace("*", "").replace("`", "")) + r"\par",
                 r"\begin{tabular}{lllrrrl}", r"\toprule",
                 " & ".join(["Target", "Comparison", "Where", r"Target $\Delta$", r"Ours $\Delta$", "Interval",
                             "Verdict"]) + r" \\", r"\midrule"]
-        seen = set()
-        for fl in targets:
-            first = fl.finding.number not in seen
-            seen.add(fl.finding.number)
-            out.append(" & ".join(latex_escape(t) for t in _line_texts(fl, False, notes, first)) + r" \\")
+        out += [" & ".join(latex_escape(t) for t in cells) + r" \\" for cells in _rows(targets, False, notes)]
         out += [r"\bottomrule", r"\end{tabular}"]
     out.append(r"\end{table}")
     out += ["% notes:"] + [f"% [{i}] {n}" for i, n in enumerate(notes.items, 1)]
