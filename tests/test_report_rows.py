@@ -211,3 +211,13 @@ def test_a_run_that_reads_no_seed_is_compared_with_every_seed_of_the_other_row()
     expected = 100 * np.mean([vec["l0"].mean() - base.mean(), vec["l1"].mean() - base.mean()])
     assert line.ours_diff == pytest.approx(expected) and line.interval.lo > 0
     assert line.ours_std == pytest.approx(100 * abs(vec["l0"].mean() - vec["l1"].mean()) / np.sqrt(2))
+
+
+def test_a_table_names_each_experiment_it_reads_once():
+    """main_results reads projection twice (two rows) and ransac_budget main_results twice (same_as): once each."""
+    specs = _specs()
+    for name, spec in specs.items():
+        assert len(spec.experiments) == len(set(spec.experiments)), (name, spec.experiments)
+        assert spec.experiments[0] == spec.experiment
+    assert specs["main_results"].experiments == ["main_results", "projection"]
+    assert specs["ransac_budget"].experiments == ["ransac_budget", "main_results"]

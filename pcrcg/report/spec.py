@@ -153,10 +153,10 @@ class TableSpec:
 
     @property
     def experiments(self) -> list[str]:
-        out = [self.experiment]
-        out += [r.experiment for r in self.rows if r.experiment and r.experiment not in out]
-        out += [r.same_as.experiment for r in self.rows if r.same_as and r.same_as.experiment not in out]
-        return out
+        """The experiments whose runs the table reads, each once: its own, its rows', their ``same_as``."""
+        rows = [r.experiment for r in self.rows if r.experiment]
+        shared = [r.same_as.experiment for r in self.rows if r.same_as]
+        return list(dict.fromkeys([self.experiment] + rows + shared))
 
 
 def _columns(raw: Mapping[str, Any] | Sequence[Mapping[str, Any]], table: str) -> tuple[Column, ...]:
