@@ -238,8 +238,8 @@ def test_report_cli(store, monkeypatch, capsys):
     report_main.main()
     text = capsys.readouterr().out
     assert f"start here: {out / 'README.md'}" in text
-    assert sorted(p.name for p in out.iterdir()) == ["README.md", "findings.csv", "findings.md", "findings.tex",
-                                                     "window_size.csv", "window_size.md", "window_size.tex",
+    assert sorted(p.name for p in out.iterdir()) == ["README.md", "findings.csv", "findings.md", "findings.png",
+                                                     "findings.tex", "window_size.csv", "window_size.md", "window_size.tex",
                                                      "window_size_coverage.png", "window_size_orderings.csv",
                                                      "window_size_recall.png"]
 
