@@ -9,23 +9,23 @@ difference (a cross). A second panel shows the same on the real scene when the f
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any, Sequence
 
 from pcrcg.plots import pyplot, save_figure
 
-if TYPE_CHECKING:
-    from pcrcg.report.findings import FilledFindings, FindingLine
+# The findings are pcrcg.report.findings.FilledFindings / FindingLine, read by attribute: that module draws
+# this figure, so importing it here (even for types) would make the two import each other.
 
 VERDICT_COLORS = {"holds": "#2a9d55", "reversed": "#c0392b", "not resolved": "#7f7f7f", "not run": "#bbbbbb"}
 
 
-def _label(fl: "FindingLine") -> str:
+def _label(fl: Any) -> str:
     at = fl.ours.at
     where = "" if at is None else (" (mean over N)" if at == "mean" else f" ({at})")
     return f"{fl.finding.label}. {fl.comparison}{where}"
 
 
-def _limit(lines: Sequence["FindingLine"], real: bool) -> float:
+def _limit(lines: Sequence[Any], real: bool) -> float:
     """Half-width of the x axis: our intervals and seeds, and the paper's differences unless one is far
     beyond ours (ICP's +67 would squeeze every other line into a few pixels; it is drawn at the edge)."""
     ours: list[float] = [2.0]
@@ -41,7 +41,7 @@ def _limit(lines: Sequence["FindingLine"], real: bool) -> float:
     return 1.12 * max([top] + [v for v in papers if v <= 2 * top] if not real else [top])
 
 
-def _panel(ax: Any, lines: Sequence["FindingLine"], real: bool, title: str) -> None:
+def _panel(ax: Any, lines: Sequence[Any], real: bool, title: str) -> None:
     lim = _limit(lines, real)
     for y, fl in enumerate(lines):
         o = fl.real if real else fl.ours
@@ -76,7 +76,7 @@ def _panel(ax: Any, lines: Sequence["FindingLine"], real: bool, title: str) -> N
     ax.tick_params(labelsize=7)
 
 
-def plot_findings(filled: "FilledFindings", path: str | Path) -> Path | None:
+def plot_findings(filled: Any, path: str | Path) -> Path | None:
     """The forest plot of the claims' lines (module docstring); None when there are none."""
     lines = [ln for ln in filled.lines if not ln.finding.is_target]
     if not lines:
