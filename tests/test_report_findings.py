@@ -419,3 +419,25 @@ def test_the_findings_list_the_seeds_behind_each_job_and_the_command_for_the_mis
     assert ("| 1 view | `views` views=1 | 0 | 1, 2 | `python -m pcrcg.run +experiment=views views=1 profile=cpu "
             "seed=1,2 -m` |") in md
     assert "| PCR-CG, deep/explicit, Pri3D, 11x11 | `main_results` features=deep | 0, 1, 2 | — | — |" in md
+
+
+def test_the_forest_plot_keeps_our_scale_and_draws_a_far_paper_difference_at_the_edge(tmp_path):
+    """ICP's paper difference (+67) beside ours (a few points) would squeeze every line: the axis follows ours
+    (and paper differences within twice ours), and the far one is drawn at the edge."""
+    from types import SimpleNamespace as NS
+
+    from pcrcg.plots.findings import _limit, plot_findings
+    from pcrcg.report.stats import Interval
+
+    def line(n, diff, lo, hi, paper, seeds):
+        ours = NS(ours_diff=diff, by_seed=seeds, interval=Interval(diff, lo, hi, 0.95, 100, 2, 2000, 0),
+                  paper_diff=paper, at=5000, ref_runs=["a"], row_runs=["b"])
+        return NS(finding=NS(label=str(n), number=n, is_target=False, benchmark="3DLoMatch"), comparison=f"B{n} − A{n}",
+                  ours=ours, real=None, verdict=HOLDS, real_verdict=None)
+
+    lines = [line(1, 2.0, 0.5, 3.5, 6.5, {"0": 1.0, "1": 3.0}), line(8, 4.8, 3.4, 6.2, 67.1, {"0": 4.7, "1": 4.9})]
+    lim = _limit(lines, real=False)
+    assert 6.5 < lim < 8.0  # ours reach 6.2 and the paper's +6.5 is within twice that: shown; +67 is not
+    filled = NS(lines=lines, spec=NS(real=None))
+    assert plot_findings(filled, tmp_path / "f.png").stat().st_size > 5_000
+    assert plot_findings(NS(lines=[], spec=NS(real=None)), tmp_path / "none.png") is None
