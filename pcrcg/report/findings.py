@@ -143,7 +143,8 @@ class FindingsSpec:
 def _selection(raw: Mapping[str, Any], where: str, target: bool = False) -> Selection:
     for key in ("name", "experiment", "where") + (() if target else ("paper",)):
         if not raw.get(key):
-            raise ConfigError(f"{where}.{key}", raw.get(key), f"set for every row of a {'target' if target else 'finding'}")
+            kind = "target" if target else "finding"
+            raise ConfigError(f"{where}.{key}", raw.get(key), f"set for every row of a {kind}")
     if "n_points" in raw and raw["n_points"] is not None:
         raise ConfigError(f"{where}.n_points", raw["n_points"],
                           "null (the row's one estimate per pair), or leave it out (the finding's sizes)")
@@ -175,7 +176,8 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
     compare = []
     for item in c.get("compare") or []:
         if not isinstance(item, (list, tuple)) or len(item) != 2 or any(str(n) not in names for n in item):
-            raise ConfigError(f"{where}.compare", item, "a pair [reference, compared] of row names: " + ", ".join(names))
+            raise ConfigError(f"{where}.compare", item,
+                              "a pair [reference, compared] of row names: " + ", ".join(names))
         if all(next(r for r in rows if r.name == str(n)).single for n in item):
             raise ConfigError(f"{where}.compare", item, "at most one side with n_points: null")
         compare.append((str(item[0]), str(item[1])))
@@ -186,7 +188,8 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
         raise ConfigError(f"{where}.expect", expect, " | ".join(EXPECT))
     sizes = _sizes(c["n_points"] if "n_points" in c else raw.get("n_points"), f"{where}.n_points")
     if sizes is None and any(r.single for r in rows):
-        raise ConfigError(f"{where}.n_points", None, "sample sizes for the rows that have them (a row has n_points: null)")
+        raise ConfigError(f"{where}.n_points", None,
+                          "sample sizes for the rows that have them (a row has n_points: null)")
     margin = None
     if target:
         margin = c.get("margin", 0.0)
