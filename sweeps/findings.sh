@@ -57,7 +57,8 @@ if [ -d "$SHARED" ]; then
       data.source.rgbd_dir="$SHARED/real-rgbd" data.root="$REAL_ROOT"
   fi
   # one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others;
-  # the claims' experiments only (the targets' rows, e.g. FPFH + RANSAC, have no real-scene column)
+  # those the findings read on the real scene (`--real-experiments`: the claims', and a target's whose
+  # benchmark is the real scene's; FPFH + RANSAC for the generated-3DMatch target is not among them)
   REAL_EXPERIMENTS=",$("$PYTHON" -m pcrcg.report.findings --real-experiments),"
   for e in ${EXPERIMENTS//,/ }; do
     [[ $REAL_EXPERIMENTS == *",$e,"* ]] || continue

@@ -37,8 +37,10 @@ def _limit(lines: Sequence[Any], real: bool) -> float:
         if o.interval is not None:
             ours += [abs(o.interval.lo), abs(o.interval.hi)]
     top = max(ours)
+    if real:  # the real scene has no paper numbers
+        return 1.12 * top
     papers = [abs(o.paper_diff) for fl in lines if (o := fl.ours) is not None and o.paper_diff is not None]
-    return 1.12 * max([top] + [v for v in papers if v <= 2 * top] if not real else [top])
+    return 1.12 * max([top] + [v for v in papers if v <= 2 * top])
 
 
 def _panel(ax: Any, lines: Sequence[Any], real: bool, title: str) -> None:

@@ -102,6 +102,15 @@ class Finding:
         """``3`` for a claim, ``T1`` for a target."""
         return f"T{self.number}" if self.is_target else str(self.number)
 
+    @property
+    def has_single(self) -> bool:
+        """Whether a row is its one estimate per pair (``n_points: null``) beside rows of several sizes."""
+        return bool(self.n_points) and any(s.single for s in self.rows)
+
+    def verdict(self, line: OrderingLine) -> str:
+        """A line's verdict: :func:`target_verdict` against the margin for a target, else :func:`line_verdict`."""
+        return line_verdict(self.sign, line) if self.margin is None else target_verdict(self.sign, self.margin, line)
+
     def selection(self, name: str) -> Selection:
         return next(s for s in self.rows if s.name == name)
 
@@ -336,7 +345,7 @@ def _table(finding: Finding, benchmark: str) -> TableSpec:
     rows = tuple(s.row() for s in finding.rows)
     by_name = {r.label: r for r in rows}
     sizes: tuple[int | None, ...] = finding.n_points or (None,)
-    if finding.n_points and any(s.single for s in finding.rows):
+    if finding.has_single:
         sizes += (None,)  # the column of the rows' one estimate per pair
     cols = tuple(Column(benchmark, finding.metric, n) for n in sizes)
     return TableSpec(name=f"finding {finding.label}", title=finding.claim, experiment=finding.rows[0].experiment,
@@ -372,7 +381,7 @@ def _fill(finding: Finding, benchmark: str, runs: pd.DataFrame, paper: pd.DataFr
         for cell in table.cells:
             sel = finding.selection(cell.row.label)
             cell.paper = _paper_value(paper, sel.paper_table, cell.row, cell.col) if sel.paper_table else None
-    if finding.n_points and any(s.single for s in finding.rows):
+    if finding.has_single:
         table.orderings = _single_orderings(finding, table, benchmark, source, settings)
     else:
         table.orderings = check_orderings(table, source, settings, keep_empty=True)
@@ -413,8 +422,7 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
         real_lines = real.orderings if real is not None else [None] * len(ours.orderings)
         for o, r in zip(ours.orderings, real_lines):
             ref, row = f.selection(o.comparison.ref.label), f.selection(o.comparison.row.label)
-            fl = FindingLine(f, ref, row, o, r, verdict=(target_verdict(f.sign, f.margin, o) if f.margin is not None
-                                                         else line_verdict(f.sign, o)))
+            fl = FindingLine(f, ref, row, o, r, verdict=f.verdict(o))
             if fl.verdict == NOT_RUN:
                 fl.note = _not_run_note(ours, ref, row, profiles, spec.seeds)
             elif o.interval is None:
@@ -479,11 +487,13 @@ class _Notes:
 
 
 def _line_texts(fl: FindingLine, real: bool, notes: _Notes, first: bool) -> list[str]:
-    claim = f"{fl.finding.label}. {fl.finding.claim}" if first else ""
-    target = fl.finding.margin
-    need = DASH if target is None else f"{'≥' if fl.finding.sign > 0 else '≤'} {_signed(fl.finding.sign * target)}"
-    out = [claim, fl.comparison, fl.where, need if target is not None else _signed(fl.ours.paper_diff),
-           ours_text(fl.ours), _interval(fl.ours), fl.verdict + notes.mark(fl.note)]
+    f = fl.finding
+    claim = f"{f.label}. {f.claim}" if first else ""
+    # a target's column is what it asks for (≥ +10.0), a claim's the paper's difference
+    wanted = (_signed(fl.ours.paper_diff) if f.margin is None
+              else f"{'≥' if f.sign > 0 else '≤'} {_signed(f.sign * f.margin)}")
+    out = [claim, fl.comparison, fl.where, wanted, ours_text(fl.ours), _interval(fl.ours),
+           fl.verdict + notes.mark(fl.note)]
     if real:
         out += [ours_text(fl.real), _interval(fl.real), (fl.real_verdict or DASH) + notes.mark(fl.real_note)]
     return out

@@ -235,7 +235,7 @@ def compare_columns(table: FilledTable, comp: Comparison, metric: str, bench: st
     common = [s for s in by_seed_row if s in by_seed_ref]
     line.by_seed = {s: by_seed_row[s] - by_seed_ref[s] for s in common}
     if len(common) > 1:
-        _, line.ours_std, line.n_seeds = mean_std([by_seed_row[s] - by_seed_ref[s] for s in common])
+        _, line.ours_std, line.n_seeds = mean_std(list(line.by_seed.values()))
     if source is None:
         line.reason = "per-pair outcomes were not loaded"
     else:
@@ -295,8 +295,8 @@ def check_orderings(table: FilledTable, source: Any, settings: StatsSettings | N
                 ref_cols = [by_n.get(c.n_points) for c in row_cols]
                 if not row_cols or any(c is None for c in ref_cols):
                     continue
-                line = compare_columns(table, comp, metric, bench, variant, at, ref_cols, row_cols,  # type: ignore[arg-type]
-                             source, settings)
+                line = compare_columns(table, comp, metric, bench, variant, at,  # type: ignore[arg-type]
+                                       ref_cols, row_cols, source, settings)
                 if not keep_empty and line.paper_diff is None and (not line.ref_runs or not line.row_runs):
                     continue  # neither the paper nor we have both numbers: nothing to say
                 lines.append(line)
