@@ -116,6 +116,7 @@ two_lanes
     ["+experiment=icp_init", "method=icp", "icp_init=learned"],
     ["+experiment=icp_init", "method=color_icp", "icp_init=learned"],
     ["+experiment=ransac_budget", "features=deep", "registration=early_exit"],
+    ["+experiment=ransac_budget", "features=deep", "registration=inlier_ranking"],
     ["+experiment=projection", "features=deep", "encoder2d=pri3d", "projection=explicit"],
     ["+experiment=window_size", "window_size=11"],
     ["+experiment=views_explicit", "views=2"],
@@ -133,6 +134,25 @@ def test_the_tables_that_reuse_the_main_pcrcg_model_train_the_same_config(job):
         return train_key(load_run_config([*overrides, "profile=cpu"], validate=False))
 
     assert train_identity(job) == train_identity(["+experiment=main_results", "features=deep"])
+
+
+def test_inlier_ranking_is_the_default_registration_ranked_by_inlier_correspondences():
+    """registration=inlier_ranking changes the hypotheses' ranking and nothing else (the budget stays Open3D
+    0.10's), and is the same run as the key it sets (a job written either way is skipped once it ran)."""
+    from omegaconf import OmegaConf
+
+    from pcrcg.config import load_run_config
+    from pcrcg.pipeline import run_hash
+
+    def cfg(*overrides):
+        return load_run_config(["+experiment=ransac_budget", "features=none", *overrides, "profile=cpu"], validate=False)
+
+    default, ranked = cfg("registration=default"), cfg("registration=inlier_ranking")
+    a, b = OmegaConf.to_container(default.registration), OmegaConf.to_container(ranked.registration)
+    assert (a["ransac"].pop("score"), b["ransac"].pop("score")) == ("overlap", "correspondences")
+    assert a == b
+    assert run_hash(ranked) == run_hash(cfg("registration=default", "registration.ransac.score=correspondences"))
+    assert run_hash(ranked) != run_hash(default)
 
 
 def test_the_views_table_two_view_row_is_the_projection_table_pri3d_implicit_model():

@@ -143,13 +143,22 @@ def test_the_spec_has_the_papers_eight_claims_and_their_differences():
     assert ("main_results", "features=deep") in spec.jobs()
     assert ("projection", "features=deep encoder2d=pri3d projection=explicit") not in spec.jobs()
     assert ("views", "views=2") not in spec.jobs()
-    assert len(spec.jobs()) == len(set(spec.jobs())) == 18  # 17 for the claims, FPFH + RANSAC for the target
-    target, *real = spec.targets
+    # 17 for the claims; FPFH + RANSAC for the targets, and both with RANSAC ranking by inlier correspondences
+    assert len(spec.jobs()) == len(set(spec.jobs())) == 20
+    assert spec.jobs()[-3:] == [("sift_dlt", "method=fpfh"), ("sift_dlt", "method=fpfh registration=inlier_ranking"),
+                                ("ransac_budget", "features=none registration=inlier_ranking")]
+    overlap, inlier = spec.targets[:3], spec.targets[3:]
+    target, *real = overlap
     assert target.margin == 10 and target.benchmark == "3DMatch" and target.label == "T1"
-    assert [s.single for s in target.rows] == [True, False] and spec.jobs()[-1] == ("sift_dlt", "method=fpfh")
+    assert [s.single for s in target.rows] == [True, False]
     # issue 20's: the same rows on the real scene's benchmarks, so FPFH's runs are evaluated there too
     assert [t.benchmark for t in real] == [f"{PREFIX}/3DMatch", f"{PREFIX}/3DLoMatch"] and all(t.margin == 0 for t in real)
-    assert "sift_dlt" in spec.experiments and spec.real_experiments[-1] == "sift_dlt"
+    # T4-T6: T1-T3 with both rows' RANSAC ranking its hypotheses by inlier correspondences
+    assert [(t.label, t.benchmark, t.margin) for t in inlier] == [(f"T{k + 4}", t.benchmark, t.margin) for k, t in enumerate(overlap)]
+    for t in inlier:
+        assert all(s.where["registration.ransac.score"] == "correspondences" for s in t.rows)
+    assert all(t.rows[0].where["registration.ransac.score"] == "overlap" for t in overlap)  # not the other FPFH runs
+    assert spec.real_experiments[-2:] == ["sift_dlt", "ransac_budget"]
 
 
 def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
@@ -216,7 +225,7 @@ def test_a_row_reads_another_experiments_runs_of_the_same_config(report):
 def test_files_index_and_code_versions(report):
     out = report["out"]
     df = pd.read_csv(out / "findings.csv", dtype={"finding": str})
-    assert set(df["finding"]) == {str(k) for k in range(1, 9)} | {"T1", "T2", "T3"}
+    assert set(df["finding"]) == {str(k) for k in range(1, 9)} | {f"T{k}" for k in range(1, 7)}
     assert set(df.loc[df["finding"].str.startswith("T"), "verdict"]) == {NOT_RUN}  # no 3DMatch runs, no FPFH
     row = df[(df["finding"] == "1") & (df["at"] == "5000")].iloc[0]
     assert row["verdict"] == HOLDS and row["n_seeds"] == 3 and row["ci_low"] > 0 and row["real_verdict"] == HOLDS
@@ -277,8 +286,9 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     assert f"-m pcrcg.prepare data=threedmatch data.source.fragments_dir={tmp_path}/real-3dmatch-fragments" in out
     evals = [ln for ln in out.splitlines() if "-m pcrcg.evaluate mode=tracked" in ln]
     assert [ln.split("experiments=[")[1].split("]")[0] for ln in evals] == [
-        "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init", "sift_dlt"]
-    assert all("name=real-redkitchen" in ln for ln in evals)  # sift_dlt: FPFH for the real-scene targets
+        "main_results", "projection", "views", "backbone_2d", "window_size", "geotransformer", "icp_init", "sift_dlt",
+        "ransac_budget"]
+    assert all("name=real-redkitchen" in ln for ln in evals)  # sift_dlt, ransac_budget: the real-scene targets
     only = subprocess.run(["bash", "sweeps/findings.sh"], cwd=ROOT, env={**env, "ONLY": "^main_results"},
                           capture_output=True, text=True, timeout=120, check=True).stdout
     assert [ln.split("experiments=[")[1].split("]")[0] for ln in only.splitlines()
@@ -286,7 +296,7 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     assert only.strip().splitlines()[-1].endswith("tables=[main_results] out_dir=reports/findings-cpu")
     assert out.strip().splitlines()[-1].endswith(
         "-m pcrcg.report profile=cpu tables=[main_results,projection,views,backbone_2d,window_size,geotransformer,"
-        "icp_init,sift_dlt] out_dir=reports/findings-cpu")
+        "icp_init,sift_dlt,ransac_budget] out_dir=reports/findings-cpu")
     assert not (tmp_path / "logs").exists()  # a dry run writes nothing
 
 
@@ -349,7 +359,8 @@ def _target_store(root: Path, gap: float) -> str:
     rng = np.random.default_rng(11)
     scenes = {"kitchen": 60, "office": 40}
     fpfh = _base(rng, scenes, 0.4)
-    _run(RunTracker(uri, "sift_dlt"), root / "work", "fpfh seed=0", {"seed": 0, "method": "fpfh"}, {"label": "FPFH"},
+    _run(RunTracker(uri, "sift_dlt"), root / "work", "fpfh seed=0",
+         {"seed": 0, "method": "fpfh", "registration.ransac.score": "overlap"}, {"label": "FPFH"},
          fpfh, bench="3DMatch", sizes=(None,))
     main = RunTracker(uri, "main_results")
     for seed in (0, 1):
