@@ -369,7 +369,8 @@ def _target_store(root: Path, gap: float) -> str:
     return uri
 
 
-@pytest.mark.parametrize("gap, margin, want", [(0.35, 10, "met"), (0.35, 60, "missed"), (0.1, 10, NOT_RESOLVED)])
+@pytest.mark.parametrize("gap, margin, want", [(0.35, 10, "met"), (0.35, 60, "missed"), (0.1, 10, NOT_RESOLVED),
+                                               (0.0, 0, "met")])  # the same pairs registered: "at least as often"
 def test_a_target_is_met_or_missed_against_its_margin_with_one_estimate_per_pair(tmp_path, gap, margin, want):
     """The profile's target: Predator (every N) against FPFH + RANSAC's one estimate per pair, by a margin.
     Predator's seed 1 is not compared (FPFH ran seed 0 only: seed against seed)."""

@@ -327,14 +327,16 @@ def line_verdict(sign: int, line: OrderingLine) -> str:
 
 def target_verdict(sign: int, margin: float, line: OrderingLine) -> str:
     """met / missed / not resolved / not run of one line of a target: the difference should be at least
-    ``margin`` points on the ``sign`` side (higher: ``lo > margin`` is met, ``hi < margin`` missed)."""
+    ``margin`` points on the ``sign`` side (higher: ``lo >= margin`` is met, ``hi < margin`` missed). "At least":
+    an interval that reaches the margin meets it (two rows registering the same pairs, ``[0, 0]``, meet a
+    margin of 0; the claims' orderings stay strict)."""
     if not line.ref_runs or not line.row_runs:
         return NOT_RUN
     iv = line.interval
     if iv is None:
         return NOT_RESOLVED
     lo, hi = (iv.lo, iv.hi) if sign > 0 else (-iv.hi, -iv.lo)
-    if lo > margin:
+    if lo >= margin:
         return MET
     if hi < margin:
         return MISSED
@@ -532,8 +534,8 @@ def seeds_markdown(filled: FilledFindings, heading: str = "###") -> list[str]:
 
 
 TARGETS_INTRO = ("The profile's own targets (`findings.targets`), tested as the claims: Δ = compared − reference, "
-                 "the same intervals; *met* when the interval clears the target on its side, *missed* when it lies "
-                 "wholly short of it, else *not resolved*.")
+                 "the same intervals; *met* when the interval lies wholly at or beyond the target on its side, "
+                 "*missed* when it lies wholly short of it, else *not resolved*.")
 
 
 def intro(filled: FilledFindings) -> str:
