@@ -20,6 +20,7 @@ from pcrcg.registration import (
     register_features,
     sample_indices,
 )
+from pcrcg.registration.feature_registration import pair_seed
 from pcrcg.testing.pairs import make_fragment_pair, simulate_outputs
 from pcrcg.testing.rooms import box_room
 
@@ -142,6 +143,12 @@ def test_register_features_end_to_end_is_seeded():
     a = register_features(src, tgt, 1000, cfg, seed=5)
     b = register_features(src, tgt, 1000, cfg, seed=5)
     assert np.array_equal(a.transform, b.transform) and np.array_equal(a.src_idx, b.src_idx)
+    # one SeedSequence registers the same way every time (spawning advances it: a copy is spawned from)
+    ss = pair_seed(0, "scene", 0, 2, 1000)
+    c, d = (register_features(src, tgt, 1000, cfg, seed=ss) for _ in range(2))
+    assert np.array_equal(c.src_idx, d.src_idx) and np.array_equal(c.transform, d.transform)
+    e = register_features(src, tgt, 1000, cfg, seed=pair_seed(0, "scene", 0, 2, 1000))
+    assert np.array_equal(c.src_idx, e.src_idx) and ss.n_children_spawned == 0
     assert len(a.src_idx) == 1000 and a.correspondences.shape == (1000, 2)
     assert _ok(a.transform, pair.transform, deg=3.0, m=0.1)
     # correspondences index the full fragments

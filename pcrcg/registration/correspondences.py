@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcrcg.registration.feature_registration import RegistrationConfig
+from pcrcg.registration.feature_registration import RegistrationConfig, sample_and_ransac_seeds
 from pcrcg.registration.ransac import RansacResult, ransac, ransac_open3d, torch_threads
 
 
@@ -40,8 +40,7 @@ def register_correspondences(pairs: np.ndarray, scores: np.ndarray, n_points: in
     (the identity when fewer than 3 correspondences remain)."""
     cfg = cfg or RegistrationConfig()
     pairs = np.asarray(pairs, np.float32).reshape(-1, 6)
-    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
-    s_sample, s_ransac = ss.spawn(2)
+    s_sample, s_ransac = sample_and_ransac_seeds(seed)
     used = sample_correspondences(np.asarray(scores).reshape(-1), int(n_points), np.random.default_rng(s_sample))
     if len(used) < 3:
         return CorrespondenceRegistration(np.eye(4), used, None)

@@ -134,6 +134,18 @@ def pair_seed(seed: int, scene: str, i: int, j: int, n_points: int) -> np.random
     return np.random.SeedSequence([int(seed) & 0xFFFFFFFF, zlib.crc32(scene.encode()), int(i), int(j), int(n_points)])
 
 
+def sample_and_ransac_seeds(seed: int | np.random.SeedSequence) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+    """The two child seeds of a registration (sampling, RANSAC), spawned from a copy of ``seed``: spawning
+    advances a ``SeedSequence``, so a caller that registers twice with the same one (two settings compared
+    on one pair) would otherwise get other samples the second time."""
+    if isinstance(seed, np.random.SeedSequence):
+        ss = np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key, pool_size=seed.pool_size)
+    else:
+        ss = np.random.SeedSequence(int(seed))
+    s_sample, s_ransac = ss.spawn(2)
+    return s_sample, s_ransac
+
+
 def register_features(
     src: FragmentOutput,
     tgt: FragmentOutput,
@@ -148,8 +160,7 @@ def register_features(
 
 
 def _register_features(src, tgt, n_points, cfg, seed) -> FeatureRegistration:
-    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
-    s_sample, s_ransac = ss.spawn(2)
+    s_sample, s_ransac = sample_and_ransac_seeds(seed)
     rng = np.random.default_rng(s_sample)
     src_idx = sample_indices(src.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
     tgt_idx = sample_indices(tgt.scores(), n_points, cfg.sampling, rng, cfg.fewer_points)
