@@ -80,3 +80,17 @@ def test_every_failure_gets_a_kind_and_the_tally_counts_them():
     tally.add(True, None)
     assert (tally.pairs, tally.registered, sum(tally.kinds.values())) == (3, 1, 2)
     assert tally.row("3DMatch", "overlap").split()[:4] == ["3DMatch", "overlap", "3", "33.3"]
+
+
+def test_bad_input_is_one_line_naming_the_setting(tmp_path):
+    import subprocess
+    import sys
+
+    ckpt = tmp_path / "model.ckpt"
+    for args, words in (([str(ckpt)], "checkpoint not found"),
+                        ([str(ckpt), "--pairs", "0"], "--pairs must be >= 1"),
+                        ([__file__, "--root", str(tmp_path)], f"no benchmark folder {tmp_path}/benchmarks/3DMatch")):
+        proc = subprocess.run([sys.executable, "-m", "pcrcg.benchmarks.ranking", *args], capture_output=True, text=True)
+        assert proc.returncode == 2
+        last = proc.stderr.strip().splitlines()[-1]
+        assert last.startswith("python -m pcrcg.benchmarks.ranking: error: ") and words in last

@@ -3,11 +3,11 @@
     python -m pcrcg.benchmarks.ranking CHECKPOINT [--root data/synthmatch-cpu] [--benchmarks 3DMatch 3DLoMatch]
         [--pairs 100] [--n-points 5000] [--profile cpu] [--distance D] [--seed 0]
 
-Per pair (counted pairs only: ``j - i > 1``) at N points: Predator's sampling and matching on the model's
+Per pair (the pairs registration recall counts, :func:`pcrcg.evaluation.metrics.counted_mask`) at N points: Predator's sampling and matching on the model's
 outputs, then RANSAC with Open3D 0.10's budget twice, ranking its hypotheses by **overlap** (Open3D's
 fitness: the share of the N sampled source points with a sampled target point within ``distance``, the
 paper's protocol) and by **inlier correspondences** (``registration=inlier_ranking``). A registration fails
-when the 3DMatch RMSE exceeds 0.2 m. Each failure is then scored by the ranking that chose it, for the
+when the 3DMatch RMSE exceeds 0.2 m; RR is the share of the counted pairs (not averaged per scene). Each failure is then scored by the ranking that chose it, for the
 chosen pose and for the ground truth:
 
 * **ranking**: the chosen pose scores at least as high as the ground truth, so no larger budget finds the
@@ -132,20 +132,25 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Tally]]:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
 
+    if args.pairs < 1 or args.n_points < 3:
+        p.error(f"--pairs must be >= 1 and --n-points >= 3, got {args.pairs} and {args.n_points}")
+    if not Path(args.checkpoint).is_file():
+        p.error(f"checkpoint not found: {args.checkpoint}")
+    missing = [b for b in args.benchmarks if not (Path(args.root) / "benchmarks" / b).is_dir()]
+    if missing:
+        p.error(f"no benchmark folder {Path(args.root) / 'benchmarks' / missing[0]} (--root, --benchmarks)")
+
     import torch
     from tqdm import tqdm
 
-    from pcrcg.errors import DataError
-    from pcrcg.evaluation.metrics import load_benchmark
-    from pcrcg.evaluation.model import as_fragment
-    from pcrcg.models.train import infer, load_module
     from pcrcg.data.stats.collect import evaluate_config
+    from pcrcg.evaluation.metrics import counted_mask, load_benchmark
+    from pcrcg.evaluation.model import as_fragment
     from pcrcg.evaluation.stage import configs_from
+    from pcrcg.models.train import infer, load_module
     from pcrcg.registration.feature_registration import pair_seed
 
     torch.set_num_threads(1)
-    if not Path(args.checkpoint).is_file():
-        raise SystemExit(f"checkpoint not found: {args.checkpoint}")
     cfg, _ = configs_from(evaluate_config(args.profile), device="cpu")
     ransac = cfg.ransac if args.distance is None else dataclasses.replace(cfg.ransac, distance=args.distance)
     cfg = dataclasses.replace(cfg, n_points=(args.n_points,), ransac=ransac)
@@ -153,17 +158,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Tally]]:
     module = load_module(args.checkpoint, "cpu")
     tallies: dict[str, dict[str, Tally]] = {}
     for bench in args.benchmarks:
-        bdir = Path(args.root) / "benchmarks" / bench
-        try:
-            gt = load_benchmark(bdir)
-        except DataError as e:
-            raise SystemExit(str(e)) from None
-        look = {(s, pr.i, pr.j): (g.transforms[k], g.infos[k]) for s, g in gt.items() for k, pr in enumerate(g.pairs)}
+        gt = load_benchmark(Path(args.root) / "benchmarks" / bench)
+        look = {(s, pr.i, pr.j): (g.transforms[k], g.infos[k]) for s, g in gt.items()  # the pairs recall counts
+                for k, (pr, counted) in enumerate(zip(g.pairs, counted_mask(g.pairs))) if counted}
         tallies[bench] = {r: Tally() for r in RANKINGS}
         outputs = infer(module, args.root, bench, max_pairs=args.pairs, progress=False)
         for out in tqdm(outputs, desc=f"rank {bench}", total=args.pairs, unit="pair"):
             s, i, j = str(out.scene), int(out.i), int(out.j)
-            if j - i <= 1:
+            if (s, i, j) not in look:
                 continue
             T_gt, info = look[(s, i, j)]
             res = diagnose_pair(as_fragment(out.src), as_fragment(out.tgt), T_gt, info, args.n_points, cfg,
