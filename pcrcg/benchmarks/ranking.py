@@ -3,12 +3,13 @@
     python -m pcrcg.benchmarks.ranking CHECKPOINT [--root data/synthmatch-cpu] [--benchmarks 3DMatch 3DLoMatch]
         [--pairs 100] [--n-points 5000] [--profile cpu] [--distance D] [--seed 0]
 
-Per pair (the pairs registration recall counts, :func:`pcrcg.evaluation.metrics.counted_mask`) at N points: Predator's sampling and matching on the model's
-outputs, then RANSAC with Open3D 0.10's budget twice, ranking its hypotheses by **overlap** (Open3D's
-fitness: the share of the N sampled source points with a sampled target point within ``distance``, the
-paper's protocol) and by **inlier correspondences** (``registration=inlier_ranking``). A registration fails
-when the 3DMatch RMSE exceeds 0.2 m; RR is the share of the counted pairs (not averaged per scene). Each failure is then scored by the ranking that chose it, for the
-chosen pose and for the ground truth:
+Per pair (the pairs registration recall counts, :func:`pcrcg.evaluation.metrics.counted_mask`) at N points:
+Predator's sampling and matching on the model's outputs, then RANSAC with Open3D 0.10's budget twice,
+ranking its hypotheses by **overlap** (Open3D's fitness: the share of the N sampled source points with a
+sampled target point within ``distance``, the paper's protocol) and by **inlier correspondences**
+(``registration=inlier_ranking``). A registration fails when the 3DMatch RMSE exceeds 0.2 m; RR is the share
+of the counted pairs (not averaged per scene). Each failure is then scored by the ranking that chose it, for
+the chosen pose and for the ground truth:
 
 * **ranking**: the chosen pose scores at least as high as the ground truth, so no larger budget finds the
   right pose: the criterion prefers a wrong one (e.g. a pose slid along a wall keeps most of the sampled
@@ -53,10 +54,10 @@ def overlap_fitness(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, distance: f
 
 def inlier_count(T: np.ndarray, src_c: np.ndarray, tgt_c: np.ndarray, distance: float) -> int:
     """T (4, 4), correspondences as coordinates src_c (K, 3) -> tgt_c (K, 3): how many lie within ``distance``
-    after ``T``."""
-    if len(src_c) == 0:
-        return 0
-    return int((np.linalg.norm(src_c @ T[:3, :3].T + T[:3, 3] - tgt_c, axis=1) < distance).sum())
+    after ``T`` (the protocol's :func:`pcrcg.evaluation.metrics.inlier_ratio`, as a count)."""
+    from pcrcg.evaluation.metrics import inlier_ratio
+
+    return int(round(inlier_ratio(src_c, tgt_c, T, distance) * len(src_c)))
 
 
 def ranking_score(ranking: str, T: np.ndarray, src: np.ndarray, tgt: np.ndarray, src_c: np.ndarray,
@@ -100,7 +101,8 @@ class Tally:
                 f"{self.kinds['ranking']:>8} {self.kinds['search']:>7}")
 
 
-def diagnose_pair(src, tgt, T_gt: np.ndarray, info: np.ndarray, n_points: int, cfg, seed) -> dict[str, tuple[bool, str | None]]:
+def diagnose_pair(src, tgt, T_gt: np.ndarray, info: np.ndarray, n_points: int, cfg,
+                  seed) -> dict[str, tuple[bool, str | None]]:
     """One pair (:class:`pcrcg.registration.FragmentOutput` each), every ranking: (registered, failure kind or
     None). ``cfg``: the run's :class:`RegistrationConfig`; ``seed``: the pair's ``SeedSequence``."""
     from pcrcg.evaluation.metrics import RMSE_THRESHOLD, registration_error
@@ -154,7 +156,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Tally]]:
     cfg, _ = configs_from(evaluate_config(args.profile), device="cpu")
     ransac = cfg.ransac if args.distance is None else dataclasses.replace(cfg.ransac, distance=args.distance)
     cfg = dataclasses.replace(cfg, n_points=(args.n_points,), ransac=ransac)
-    distance = cfg.ransac.distance
     module = load_module(args.checkpoint, "cpu")
     tallies: dict[str, dict[str, Tally]] = {}
     for bench in args.benchmarks:
@@ -172,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, Tally]]:
                                 pair_seed(args.seed, s, i, j, args.n_points))
             for r, (ok, kind) in res.items():
                 tallies[bench][r].add(ok, kind)
-    print(f"\n{args.checkpoint}: N = {args.n_points}, RANSAC distance {distance:g} m, {cfg.ransac.budget}; "
+    print(f"\n{args.checkpoint}: N = {args.n_points}, RANSAC distance {cfg.ransac.distance:g} m, {cfg.ransac.budget}; "
           f"counted pairs of {args.pairs} spread per benchmark")
     print(f"{'benchmark':<10} {'ranking':<16} {'pairs':>5} {'RR %':>7} {'failed':>6} {'ranking':>8} {'search':>7}")
     for bench, by in tallies.items():
