@@ -8,6 +8,9 @@
 #   LANES=1 sweeps/findings.sh cpu        # one lane: the jobs one after another (one core free)
 #   ONLY=^main_results sweeps/findings.sh # only the jobs that match this extended regex (finding 1 first)
 #   OUT=DIR sweeps/findings.sh            # where the report goes (default reports/findings-<profile>/)
+#   REGISTRATION=inlier_ranking sweeps/findings.sh   # every job registers with that group of conf/registration/
+#                                         # (RANSAC ranked by inlier correspondences, not the paper's overlap);
+#                                         # the report selects those runs; default report reports/findings-<profile>-<group>/
 #
 # The job list comes from the findings spec (`python -m pcrcg.report.findings --jobs`: the claims' rows, then
 # the targets'), so a finding or target added to conf/report.yaml is swept here. Resumable: a run skips
@@ -19,16 +22,24 @@
 set -u
 cd "$(dirname "$0")/.."
 PROFILE=${1:-cpu}
-LOGS=${LOGS:-outputs/findings-$PROFILE}
+REGISTRATION=${REGISTRATION:-}
+SUFFIX=${REGISTRATION:+-$REGISTRATION}
+LOGS=${LOGS:-outputs/findings-$PROFILE$SUFFIX}
 export MLFLOW_TRACKING_URI=${MLFLOW_TRACKING_URI:-sqlite:///$PWD/mlflow.db}
 # shellcheck source=sweeps/lib.sh
 . sweeps/lib.sh
 REAL_ROOT=${REAL_ROOT:-data/real-redkitchen}
-OUT=${OUT:-reports/findings-$PROFILE}
+OUT=${OUT:-reports/findings-$PROFILE$SUFFIX}
 SHARED=${SHARED:-../shared/data}
 
 SEEDS=$("$PYTHON" -m pcrcg.report.findings --seeds) || exit 2
-mapfile -t JOBS < <("$PYTHON" -m pcrcg.report.findings --jobs)
+REG_ARGS=()
+[ -n "$REGISTRATION" ] && REG_ARGS=(--registration "$REGISTRATION")
+# the report's filters for the runs of that registration group (none: the report's own, the paper's protocol)
+REPORT_WHERE=$("$PYTHON" -m pcrcg.report.findings --report-overrides "${REG_ARGS[@]}") || exit 2
+mapfile -t REPORT_ARGS <<<"$REPORT_WHERE"
+[ -n "$REPORT_WHERE" ] || REPORT_ARGS=()
+mapfile -t JOBS < <("$PYTHON" -m pcrcg.report.findings --jobs "${REG_ARGS[@]}")
 if [ "${#JOBS[@]}" -eq 0 ]; then
   echo "findings.sh: conf/report.yaml defines no findings (findings.claims)" >&2
   exit 2
@@ -70,5 +81,5 @@ else
 fi
 # the report of this sweep alone: the findings and the tables of its experiments, in their own folder (the
 # tables of reports/ may come from other sweeps and stores)
-run "$PYTHON" -m pcrcg.report profile="$PROFILE" "tables=[$EXPERIMENTS]" out_dir="$OUT"
+run "$PYTHON" -m pcrcg.report profile="$PROFILE" "tables=[$EXPERIMENTS]" out_dir="$OUT" "${REPORT_ARGS[@]}"
 [ "$DRY_RUN" = 1 ] || echo "Findings: $OUT/findings.md    Runs: mlflow ui --backend-store-uri $MLFLOW_TRACKING_URI"

@@ -33,8 +33,9 @@ def _rr(ws: int, seed: int, n: int) -> float:
 
 
 def _log(tr, name, params, tags, metrics, status="FINISHED", error=None):
+    """One fake run; ranked as the paper's protocol ranks (the report's default ``where``) unless ``params`` say."""
     rid = tr.start(name, {"experiment": tr.experiment_name, "git_sha": "a" * 40, **tags})
-    tr.log_params(rid, params)
+    tr.log_params(rid, {"registration.ransac.score": "overlap", **params})
     tr.log_metrics(rid, metrics)
     if status == "FINISHED":
         tr.finish(rid)
@@ -90,7 +91,8 @@ def store(tmp_path_factory):
     # a run that never ended (crashed worker)
     views = RunTracker(uri, "views")
     rid = views.start("views=1", {"config_hash": "v1", "profile": "cpu", "experiment": "views"})
-    views.log_params(rid, {"views": 1, "projection.name": "implicit", "encoder2d.name": "pri3d", "seed": 0})
+    views.log_params(rid, {"views": 1, "projection.name": "implicit", "encoder2d.name": "pri3d", "seed": 0,
+                           "registration.ransac.score": "overlap"})
     out = root / "reports"
     result = generate_report(_report_cfg(out, uri, profile="cpu"), base_dir=root, command="python -m pcrcg.report")
     return {"uri": uri, "root": root, "out": out, "ids": ids, "result": result, "running": rid}
@@ -194,8 +196,8 @@ def test_failed_missing_and_running_cells_are_dashes_with_reasons(store):
     one = views[views["variant"] == "1"].iloc[0]
     assert one["reason"] == f"still running or crashed (run {store['running'][:8]})"
     two = views[views["variant"] == "2"].iloc[0]
-    assert two["reason"] == ("no run of experiment 'views' with views=2, projection.name=implicit, encoder2d.name=pri3d "
-                             "at profile cpu; nor of experiment 'projection' (features.name=deep)")
+    assert two["reason"] == ("no run of experiment 'views' with views=2, projection.name=implicit, encoder2d.name=pri3d, "
+                             "registration.ransac.score=overlap at profile cpu; nor of experiment 'projection' (features.name=deep)")
     tex = (store["out"] / "window_size.tex").read_text()
     assert r"PCR-CG 17x17 (ours) & -- [1] & -- [1] & -- [1] & -- [1] & -- [1] \\" in tex
     assert "% [1] failed: out of memory" in tex
@@ -266,7 +268,8 @@ def code_store(tmp_path_factory):
         run = client.create_run(exp, start_time=1_000_000 + 1000 * t, run_name="window_size=3",
                                 tags={"experiment": "window_size", "config_hash": f"h{seed}", "profile": "cpu",
                                       "git_sha": "c" * 40, "code_version": code})
-        for key, value in (("window_size", "3"), ("seed", str(seed)), ("encoder2d.name", "pri3d")):
+        for key, value in (("window_size", "3"), ("seed", str(seed)), ("encoder2d.name", "pri3d"),
+                           ("registration.ransac.score", "overlap")):
             client.log_param(run.info.run_id, key, value)
         client.log_metric(run.info.run_id, "3DLoMatch/rr_5000", rr)
         client.set_terminated(run.info.run_id, "FINISHED")

@@ -58,7 +58,7 @@ def _run(tr, work: Path, name: str, params: dict, tags: dict, ok: dict, real_ok:
         metrics.update({f"{PREFIX}/3DLoMatch/rr_{n}": rr for n in N})
     rid = tr.start(name, {"experiment": tr.experiment_name, "git_sha": "d" * 40, "code_version": "v1",
                           "profile": "cpu", "config_hash": name, **tags})
-    tr.log_params(rid, params)
+    tr.log_params(rid, {"registration.ransac.score": "overlap", **params})  # the report's default where
     tr.log_metrics(rid, metrics)
     tr.log_artifact(rid, folder / "pairs", "pairs")
     if real_ok is not None:

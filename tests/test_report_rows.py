@@ -21,8 +21,8 @@ from omegaconf import OmegaConf
 from pcrcg.config import CONF_DIR, load_run_config
 from pcrcg.experiments import experiment_jobs
 from pcrcg.pipeline import method_label, run_hash
-from pcrcg.report.findings import load_findings
-from pcrcg.report.spec import parse_specs
+from pcrcg.report.findings import load_findings, parse_findings
+from pcrcg.report.spec import default_where, parse_specs
 from pcrcg.report.tables import _paper_value, fill_table, load_paper, match
 from pcrcg.tracking.hashing import flatten, to_plain
 
@@ -49,8 +49,9 @@ def _jobs(experiment: str, extra: str | None = None) -> pd.DataFrame:
 
 
 def _specs():
-    raw = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").specs, resolve=True)
-    return parse_specs(raw)
+    cfg = OmegaConf.load(CONF_DIR / "report.yaml")
+    return parse_specs(OmegaConf.to_container(cfg.specs, resolve=True),
+                       default_where(OmegaConf.to_container(cfg.where, resolve=True)))
 
 
 def test_jobs_are_recorded_with_the_params_and_tags_the_filters_read():
@@ -155,7 +156,8 @@ def test_a_row_outside_the_sweep_says_how_to_run_it():
     assert disk.command("backbone_2d", "cpu") == "python -m pcrcg.run +experiment=backbone_2d features=disk profile=cpu"
     filled = fill_table(spec, pd.DataFrame({"experiment": [], "status": []}), load_paper(), {"backbone_2d": "cpu"})
     reasons = {c.reason for c in filled.cells if c.row is disk}
-    assert reasons == {"no run of experiment 'backbone_2d' with features.name=disk at profile cpu "
+    assert reasons == {"no run of experiment 'backbone_2d' with features.name=disk, registration.ransac.score=overlap "
+                       "at profile cpu "
                        "(not in the sweep: python -m pcrcg.run +experiment=backbone_2d features=disk profile=cpu)"}
     assert _specs()["default"].rows[1].command("default") == "python -m pcrcg.run features=deep projection=explicit"
 
@@ -221,3 +223,67 @@ def test_a_table_names_each_experiment_it_reads_once():
         assert spec.experiments[0] == spec.experiment
     assert specs["main_results"].experiments == ["main_results", "projection"]
     assert specs["ransac_budget"].experiments == ["ransac_budget", "main_results"]
+
+
+def test_the_report_where_is_inherited_by_every_row_of_ours_and_a_row_s_own_value_wins():
+    from pcrcg.errors import ConfigError
+
+    defaults = default_where({"registration": {"ransac": {"score": "overlap"}}, "profile": {"name": "cpu"}})
+    assert defaults == {"registration.ransac.score": "overlap", "profile.name": "cpu"}
+    assert default_where(None) == {} and default_where({}) == {}
+    with pytest.raises(ConfigError, match="where"):
+        default_where(["registration.ransac.score=overlap"])  # type: ignore[arg-type]
+    spec = parse_specs({"t": {"experiment": "ransac_budget", "columns": [{"benchmark": "3DLoMatch", "metric": "RR"}],
+                              "rows": [{"method": "FCGF", "reason": "published"},
+                                       {"method": "Predator", "where": {"label": "Predator"}},
+                                       {"method": "Predator", "variant": "inlier", "where": {
+                                           "label": "Predator", "registration.ransac.score": "correspondences"}}]}},
+                       {"registration.ransac.score": "overlap"})["t"]
+    baseline, overlap, inlier = spec.rows
+    assert baseline.where == {}  # a published baseline: no runs of ours, with or without the report's filters
+    assert overlap.where == {"label": "Predator", "registration.ransac.score": "overlap"}
+    assert inlier.where == {"label": "Predator", "registration.ransac.score": "correspondences"}
+    runs = pd.DataFrame({"params.registration.ransac.score": ["overlap", "correspondences"],
+                         "tags.label": ["Predator", "Predator"]})
+    assert match(runs, overlap.where).tolist() == [True, False]
+    assert match(runs, inlier.where).tolist() == [False, True]
+
+
+@pytest.mark.parametrize("registration", ["inlier_ranking", "early_exit"])
+def test_a_findings_sweep_with_another_registration_runs_jobs_that_its_report_selects(registration):
+    """``REGISTRATION=<group> sweeps/findings.sh``: every job registers with the group instead of its own
+    registration overrides, and the report, with the overrides `--report-overrides` prints, selects those runs
+    for every claim's row (and not the runs of the paper's protocol)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from pcrcg.report.findings import registration_overrides
+
+    overrides = registration_overrides(registration)
+    assert overrides and all(o.startswith("++where.registration.") for o in overrides)
+    if registration == "inlier_ranking":
+        assert overrides == ["++where.registration.ransac.score='correspondences'"]
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR.resolve()), version_base="1.3"):
+        cfg = compose(config_name="report", overrides=overrides)
+    GlobalHydra.instance().clear()
+    defaults = default_where(OmegaConf.to_container(cfg.where, resolve=True))
+    plain = load_findings()
+    assert plain is not None and all(s.where.get("registration.ransac.score") for f in plain.claims for s in f.rows)
+    spec = parse_findings(OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").findings, resolve=True),
+                          defaults)
+    jobs = spec.jobs(registration)
+    assert len(jobs) == len(set(jobs)) and all(job.split().count(f"registration={registration}") == 1
+                                               for _, job in jobs)
+    assert not any(t.startswith("registration.") for _, job in jobs for t in job.split())
+    for finding in spec.claims:
+        for sel in finding.rows:
+            own = [t for t in sel.job.split() if not t.startswith(("registration=", "registration."))]
+            job = " ".join([*own, f"registration={registration}"])
+            assert (sel.experiment, job) in jobs
+            assert match(_jobs(sel.experiment, job), sel.where).all(), (finding.claim, sel.name, job)
+            # the paper's protocol's job of the same row is not selected
+            assert not match(_jobs(sel.experiment, sel.job), sel.where).any(), (finding.claim, sel.name)
+    assert ("sift_dlt", "method=fpfh registration=inlier_ranking") in plain.jobs()  # the plain list: as written
+    with pytest.raises(Exception, match="registration"):
+        registration_overrides("no_such_group")

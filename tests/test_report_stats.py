@@ -338,7 +338,7 @@ def test_own_estimates_are_scored_beside_the_n_and_recomputed_for_older_files(tm
         rid = tr.start(name, {"experiment": "geotransformer", "profile": "cpu",
                               "real.data_root": f"{tmp_path / 'real'} params_hash=abc"})
         tr.log_params(rid, {"data.root": "data/bench", "eval.predator_variant": False, "eval.rmse_threshold": 0.2,
-                            "eval.max_pairs": "null"})
+                            "eval.max_pairs": "null", "registration.ransac.score": "overlap"})
         tr.log_artifact(rid, est_dir, "estimates/3DLoMatch")
         tr.log_artifact(rid, pairs_dir, "pairs")
         tr.log_artifact(rid, tmp_path / "real-est" / "3DLoMatch", "real/estimates/3DLoMatch")
@@ -444,7 +444,7 @@ def _learned_run(tr, work: Path, name: str, params: dict, tags: dict, gts: dict,
         arts.append((est_dir, f"estimates/{b}"))
     rid = tr.start(name, {"experiment": tr.experiment_name, "git_sha": "b" * 40, "profile": "cpu", **tags})
     tr.log_params(rid, {"eval.predator_variant": False, "eval.rmse_threshold": 0.2, "eval.max_pairs": "null",
-                        "eval.fmr_threshold": 0.05, **params})
+                        "eval.fmr_threshold": 0.05, "registration.ransac.score": "overlap", **params})
     tr.log_metrics(rid, metrics)
     if est:
         for path, art in arts:

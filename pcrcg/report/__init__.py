@@ -30,7 +30,7 @@ from pcrcg.report.orderings import StatsSettings, check_orderings
 from pcrcg.report.outcomes import OutcomeSource
 from pcrcg.report.render import to_latex, to_markdown, write_csv, write_orderings_csv
 from pcrcg.report.load import load_runs, newest_profile
-from pcrcg.report.spec import TableSpec, parse_specs
+from pcrcg.report.spec import TableSpec, default_where, parse_specs
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 
 if TYPE_CHECKING:  # imported where used: `python -m pcrcg.report.findings` runs that module as a script
@@ -84,7 +84,8 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
 
     c = _plain(cfg)
     base = Path(base_dir) if base_dir is not None else Path.cwd()
-    specs = parse_specs(c["specs"])
+    defaults = default_where(c.get("where"))
+    specs = parse_specs(c["specs"], defaults)
     names = _select(specs, c.get("tables", "all"))
     settings = StatsSettings.from_dict(c.get("stats"))  # a bad setting stops the report before it reads or writes
     out_dir = Path(str(c.get("out_dir") or "reports"))
@@ -94,7 +95,7 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     from pcrcg.report.findings import fill_findings, parse_findings, write_findings
 
     experiments = sorted({e for n in names for e in specs[n].experiments})
-    findings = parse_findings(c.get("findings"))
+    findings = parse_findings(c.get("findings"), defaults)
     found = findings.experiments if findings is not None else []
     all_runs = load_runs(uri, sorted(set(experiments) | set(found)))
     runs = all_runs[all_runs["experiment"].isin(experiments)] if len(all_runs) else all_runs
@@ -147,7 +148,9 @@ def write_experiment_tables(experiment: str, uri: str, profile: str | None, out_
     report_cfg = OmegaConf.load(CONF_DIR / "report.yaml")
     for key in ("hydra", "defaults"):
         report_cfg.pop(key, None)
-    specs = parse_specs(OmegaConf.to_container(report_cfg.specs, resolve=True))  # type: ignore[arg-type]
+    specs = parse_specs(OmegaConf.to_container(report_cfg.specs, resolve=True),  # type: ignore[arg-type]
+                        default_where(OmegaConf.to_container(report_cfg.where, resolve=True)  # type: ignore[arg-type]
+                                      if report_cfg.get("where") is not None else None))
     names = tables_for_experiment(specs, experiment)
     if not names:
         print(f"{prefix} experiment {experiment!r} feeds no paper table; the tables come from "

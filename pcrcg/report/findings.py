@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -42,7 +43,7 @@ import pandas as pd
 from pcrcg.errors import ConfigError
 from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_orderings, compare_columns,
                                     select_columns)
-from pcrcg.report.spec import Column, Comparison, Row, TableSpec, run_command
+from pcrcg.report.spec import Column, Comparison, Row, TableSpec, default_where, run_command, with_defaults
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
 from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
@@ -140,16 +141,46 @@ class FindingsSpec:
         on_real = [f for f in self.targets if self.real and f.benchmark.startswith(f"{self.real}/")]
         return list(dict.fromkeys(s.experiment for f in self.claims + tuple(on_real) for s in f.rows))
 
-    def jobs(self) -> list[tuple[str, str]]:
-        """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order."""
-        return list(dict.fromkeys((s.experiment, s.job) for f in self.all for s in f.rows))
+    def jobs(self, registration: str | None = None) -> list[tuple[str, str]]:
+        """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order.
+        ``registration``: every job registers with that group of conf/registration/ instead (its own
+        ``registration=`` / ``registration.*=`` overrides dropped; jobs that then coincide run once)."""
+        jobs = ((s.experiment, _with_registration(s.job, registration) if registration else s.job)
+                for f in self.all for s in f.rows)
+        return list(dict.fromkeys(jobs))
 
     def real_command(self) -> str:
         return (f"python -m pcrcg.evaluate mode=tracked experiments=[{','.join(self.real_experiments)}] "
                 f"data.root={self.real_root} name={self.real}")
 
 
-def _selection(raw: Mapping[str, Any], where: str, target: bool = False) -> Selection:
+def _with_registration(job: str, registration: str) -> str:
+    """``job`` (overrides) with ``registration=<registration>`` instead of its own registration overrides."""
+    kept = [t for t in job.split() if not t.startswith(("registration=", "registration."))]
+    return " ".join([*kept, f"registration={registration}"])
+
+
+def registration_overrides(registration: str, conf_dir: str | Path | None = None) -> list[str]:
+    """The report overrides that select the runs of ``registration`` (a group of conf/registration/ that
+    inherits ``default`` and sets only what differs): ``++where.registration.<key>='<value>'`` per setting of
+    the group file, e.g. ``inlier_ranking`` -> ``++where.registration.ransac.score='correspondences'``."""
+    from omegaconf import OmegaConf
+
+    from pcrcg.config import CONF_DIR
+    from pcrcg.tracking.hashing import flatten
+
+    path = Path(conf_dir or CONF_DIR) / "registration" / f"{registration}.yaml"
+    if not path.is_file():
+        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise ConfigError("registration", registration, " | ".join(options))
+    node = OmegaConf.to_container(OmegaConf.load(path))
+    assert isinstance(node, dict)
+    node.pop("defaults", None)
+    return [f"++where.registration.{k}='{v}'" for k, v in flatten(node).items()]
+
+
+def _selection(raw: Mapping[str, Any], where: str, target: bool = False,
+               defaults: Mapping[str, Any] | None = None) -> Selection:
     for key in ("name", "experiment", "where") + (() if target else ("paper",)):
         if not raw.get(key):
             kind = "target" if target else "finding"
@@ -162,7 +193,8 @@ def _selection(raw: Mapping[str, Any], where: str, target: bool = False) -> Sele
         raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv")
     if not isinstance(paper, Mapping):
         raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv, or leave it out")
-    return Selection(str(raw["name"]), str(raw["experiment"]), dict(raw["where"]), str(raw.get("job") or ""),
+    return Selection(str(raw["name"]), str(raw["experiment"]), with_defaults(raw["where"], defaults or {}),
+                     str(raw.get("job") or ""),
                      str(paper.get("table") or ""), str(paper.get("method") or ""), str(paper.get("variant") or ""),
                      single="n_points" in raw)
 
@@ -176,9 +208,10 @@ def _sizes(raw: Any, where: str) -> tuple[int, ...] | None:
         raise ConfigError(where, raw, "a list of sample sizes, or null") from None
 
 
-def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, target: bool) -> Finding:
+def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, target: bool,
+             defaults: Mapping[str, Any] | None = None) -> Finding:
     """One claim (``findings.claims[k-1]``) or target (``findings.targets[k-1]``, with its ``margin``)."""
-    rows = tuple(_selection(r, f"{where}.rows[{i}]", target) for i, r in enumerate(c.get("rows") or []))
+    rows = tuple(_selection(r, f"{where}.rows[{i}]", target, defaults) for i, r in enumerate(c.get("rows") or []))
     names = [r.name for r in rows]
     if len(set(names)) != len(names) or len(rows) < 2:
         raise ConfigError(f"{where}.rows", names, "at least two rows with different names")
@@ -210,15 +243,16 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
                    str(c.get("metric", raw.get("metric", "RR"))), sizes, expect, rows, tuple(compare), margin)
 
 
-def parse_findings(raw: Mapping[str, Any] | None) -> FindingsSpec | None:
-    """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings)."""
+def parse_findings(raw: Mapping[str, Any] | None, defaults: Mapping[str, Any] | None = None) -> FindingsSpec | None:
+    """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings). ``defaults``: the
+    report's flat filters that every row inherits unless it sets the key (:func:`pcrcg.report.spec.default_where`)."""
     if not raw:
         return None
-    claims = tuple(_finding(c, k, raw, f"findings.claims[{k - 1}]", False)
+    claims = tuple(_finding(c, k, raw, f"findings.claims[{k - 1}]", False, defaults)
                    for k, c in enumerate(raw.get("claims") or [], 1))
     if not claims:
         raise ConfigError("findings.claims", raw.get("claims"), "a list of claims (or findings: null)")
-    targets = tuple(_finding(c, k, raw, f"findings.targets[{k - 1}]", True)
+    targets = tuple(_finding(c, k, raw, f"findings.targets[{k - 1}]", True, defaults)
                     for k, c in enumerate(raw.get("targets") or [], 1))
     real = raw.get("real")
     seeds = tuple(int(s) for s in (raw.get("seeds") or ()))
@@ -678,19 +712,20 @@ def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
 
 
 def load_findings(path: str | Path | None = None) -> FindingsSpec | None:
-    """The ``findings`` of conf/report.yaml (or of the report config at ``path``)."""
+    """The ``findings`` of conf/report.yaml (or of the report config at ``path``), with its ``where``."""
     from omegaconf import OmegaConf
 
     from pcrcg.config import CONF_DIR
 
     cfg = OmegaConf.load(path or CONF_DIR / "report.yaml")
-    node = cfg.get("findings")
-    return parse_findings(OmegaConf.to_container(node, resolve=True) if node is not None else None)  # type: ignore[arg-type]
+    node, where = cfg.get("findings"), cfg.get("where")
+    return parse_findings(OmegaConf.to_container(node, resolve=True) if node is not None else None,  # type: ignore[arg-type]
+                          default_where(OmegaConf.to_container(where, resolve=True) if where is not None else None))  # type: ignore[arg-type]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m pcrcg.report.findings --jobs | --experiments | --real-experiments | --seeds``: what
-    sweeps/findings.sh runs."""
+    """``python -m pcrcg.report.findings --jobs | --experiments | --real-experiments | --seeds | --report-overrides
+    [--registration NAME]``: what sweeps/findings.sh runs."""
     p = argparse.ArgumentParser(prog="python -m pcrcg.report.findings", description=main.__doc__)
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--jobs", action="store_true", help="one job a line: <experiment> [overrides...]")
@@ -698,13 +733,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     what.add_argument("--real-experiments", action="store_true",
                       help="the experiments evaluated on the real scene (the claims'), comma-separated")
     what.add_argument("--seeds", action="store_true", help="the seeds, comma-separated")
+    what.add_argument("--report-overrides", action="store_true",
+                      help="the overrides of `python -m pcrcg.report` that select the runs of --registration, one a line")
+    p.add_argument("--registration", default=None,
+                   help="a group of conf/registration/ (e.g. inlier_ranking) that every job registers with instead")
     p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
     args = p.parse_args(argv)
+    try:  # a registration group that is not one: one line, before anything is printed
+        lines = registration_overrides(args.registration) if args.registration else []
+    except ConfigError as e:
+        print(f"python -m pcrcg.report.findings: {e}", file=sys.stderr)
+        return 2
+    if args.report_overrides:
+        print("\n".join(lines))
+        return 0
     spec = load_findings(args.config)
     if spec is None:
         return 0
     if args.jobs:
-        for exp, job in spec.jobs():
+        for exp, job in spec.jobs(args.registration):
             print(f"{exp} {job}".strip())
     elif args.experiments:
         print(",".join(spec.experiments))

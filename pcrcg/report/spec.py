@@ -240,13 +240,37 @@ def _same_as(raw: Any, where: str) -> SameAs | None:
     return SameAs(raw["experiment"], dict(raw.get("where") or {}), raw.get("job"))
 
 
-def parse_specs(raw: Mapping[str, Any]) -> dict[str, TableSpec]:
-    """``specs`` node of conf/report.yaml -> {name: TableSpec}."""
+def default_where(node: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The report's ``where`` (conf/report.yaml: nested, ``{registration: {ransac: {score: overlap}}}``) as the
+    flat filters of a row (``{"registration.ransac.score": "overlap"}``); None or empty: no filter."""
+    if node is None:
+        return {}
+    if not isinstance(node, Mapping):
+        raise ConfigError("where", node, "a mapping of config keys to values, e.g. {registration: {ransac: {score: overlap}}}")
+    out: dict[str, Any] = {}
+    for key, value in node.items():
+        if isinstance(value, Mapping):
+            out.update({f"{key}.{k}": v for k, v in default_where(value).items()})
+        else:
+            out[str(key)] = value
+    return out
+
+
+def with_defaults(where: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict[str, Any]:
+    """``where`` with each of the report's default filters it does not set itself (a row's own value wins)."""
+    return {**where, **{k: v for k, v in defaults.items() if k not in where}}
+
+
+def parse_specs(raw: Mapping[str, Any], defaults: Mapping[str, Any] | None = None) -> dict[str, TableSpec]:
+    """``specs`` node of conf/report.yaml -> {name: TableSpec}. ``defaults``: flat filters every row of ours
+    inherits unless it sets the key (:func:`default_where`); a published baseline (a row without ``where``)
+    stays without runs."""
     out: dict[str, TableSpec] = {}
     for name, s in raw.items():
         rows = tuple(
             Row(method=str(r["method"]), variant=str(r.get("variant") or ""), label=str(r.get("label") or ""),
-                where=dict(r.get("where") or {}), experiment=r.get("experiment"), reason=r.get("reason"),
+                where=with_defaults(r["where"], defaults or {}) if r.get("where") else {},
+                experiment=r.get("experiment"), reason=r.get("reason"),
                 job=r.get("job"), same_as=_same_as(r.get("same_as"), f"specs.{name}.rows[{i}].same_as"))
             for i, r in enumerate(s["rows"])
         )
