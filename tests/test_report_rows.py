@@ -251,13 +251,13 @@ def test_the_report_where_is_inherited_by_every_row_of_ours_and_a_row_s_own_valu
 
 @pytest.mark.parametrize("registration", ["inlier_ranking", "early_exit"])
 def test_a_findings_sweep_with_another_registration_runs_jobs_that_its_report_selects(registration):
-    """``REGISTRATION=<group> sweeps/findings.sh``: every job registers with the group instead of its own
-    registration overrides, and the report, with the overrides `--report-overrides` prints, selects those runs
-    for every claim's row (and not the runs of the paper's protocol)."""
+    """``REGISTRATION=<group> sweeps/findings.sh``: the report overrides that `--report-overrides` prints make the
+    findings of the runs so registered; every row that sets no registration filter of its own then runs its job
+    with the group and selects that job (not the paper's protocol's); a row that sets one keeps its job."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from pcrcg.report.findings import registration_overrides
+    from pcrcg.report.findings import registration_of, registration_overrides, registration_where
 
     overrides = registration_overrides(registration)
     assert overrides and all(o.startswith("++where.registration.") for o in overrides)
@@ -268,22 +268,22 @@ def test_a_findings_sweep_with_another_registration_runs_jobs_that_its_report_se
         cfg = compose(config_name="report", overrides=overrides)
     GlobalHydra.instance().clear()
     defaults = default_where(OmegaConf.to_container(cfg.where, resolve=True))
+    assert registration_of(defaults) == registration and registration_of(default_where(
+        OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").where))) is None
     plain = load_findings()
-    assert plain is not None and all(s.where.get("registration.ransac.score") for f in plain.claims for s in f.rows)
     spec = parse_findings(OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").findings, resolve=True),
                           defaults)
-    jobs = spec.jobs(registration)
-    assert len(jobs) == len(set(jobs)) and all(job.split().count(f"registration={registration}") == 1
-                                               for _, job in jobs)
-    assert not any(t.startswith("registration.") for _, job in jobs for t in job.split())
-    for finding in spec.claims:
-        for sel in finding.rows:
-            own = [t for t in sel.job.split() if not t.startswith(("registration=", "registration."))]
-            job = " ".join([*own, f"registration={registration}"])
-            assert (sel.experiment, job) in jobs
-            assert match(_jobs(sel.experiment, job), sel.where).all(), (finding.claim, sel.name, job)
-            # the paper's protocol's job of the same row is not selected
-            assert not match(_jobs(sel.experiment, sel.job), sel.where).any(), (finding.claim, sel.name)
-    assert ("sift_dlt", "method=fpfh registration=inlier_ranking") in plain.jobs()  # the plain list: as written
+    assert plain is not None and spec is not None
+    assert spec.jobs() == load_findings(where=registration_where(registration)).jobs()  # the sweep's job list
+    for plain_finding, finding in zip(plain.all, spec.all):
+        for before, sel in zip(plain_finding.rows, finding.rows):
+            if before.where.get("registration.ransac.score") != "overlap" or "registration=" in before.job:
+                assert sel.job == before.job, (finding.claim, sel.name)  # a row about the ranking keeps its job
+                continue
+            own = [t for t in before.job.split() if not t.startswith(("registration=", "registration."))]
+            assert sel.job == " ".join([*own, f"registration={registration}"])
+            assert match(_jobs(sel.experiment, sel.job), sel.where).all(), (finding.claim, sel.name, sel.job)
+            assert not match(_jobs(sel.experiment, before.job), sel.where).any(), (finding.claim, sel.name)
+    assert all(s.job.split().count(f"registration={registration}") == 1 for f in spec.claims for s in f.rows)
     with pytest.raises(Exception, match="registration"):
-        registration_overrides("no_such_group")
+        registration_where("no_such_group")

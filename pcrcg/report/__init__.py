@@ -47,6 +47,7 @@ class ReportResult:
     tables: dict[str, FilledTable] = field(default_factory=dict)
     identity: str = DEFAULT_IDENTITY
     findings: FilledFindings | None = None
+    where: Mapping[str, Any] = field(default_factory=dict)  # the report-wide filters (conf/report.yaml `where`)
 
     @property
     def index(self) -> Path:
@@ -107,7 +108,7 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     if identity not in IDENTITIES:
         raise ConfigError("identity", identity, " | ".join(IDENTITIES))
 
-    result = ReportResult(out_dir, uri, identity=identity)
+    result = ReportResult(out_dir, uri, identity=identity, where=defaults)
     with OutcomeSource(uri, base, all_runs) as source:
         for name in names:
             table = fill_table(specs[name], runs, paper, profiles, identity)
@@ -218,6 +219,11 @@ def _index(result: ReportResult, runs: pd.DataFrame, experiments: Sequence[str],
                                    "from one code version, that of its newest run." if same_code(result.identity) else
                                    "the same config (`identity=config`): a cell's seeds may come from different "
                                    "code versions (each table lists them)."))
+    if result.where:
+        out.append("Every row of ours counts only the runs with "
+                   + ", ".join(f"`{k}={v}`" for k, v in result.where.items())
+                   + " unless it sets the key itself (the report-wide `where` of conf/report.yaml; "
+                     "`registration.ransac.score=overlap`: RANSAC ranked as the paper's protocol ranks).")
     out.append("")
     out.append("Paper trend kept: of the row pairs with both numbers, per column, how many we order as the paper "
                "does (signs only). Paper orderings beyond noise: of the orderings the table tests (`compare`), "

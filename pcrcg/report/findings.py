@@ -123,6 +123,8 @@ class FindingsSpec:
     real_root: str = "data/real-redkitchen"
     seeds: tuple[int, ...] = (0, 1, 2)
     targets: tuple[Finding, ...] = ()
+    where: Mapping[str, Any] = field(default_factory=dict)  # the report-wide filters the rows inherit
+    registration: str | None = None  # the group of conf/registration/ those filters select (registration_of)
 
     @property
     def all(self) -> tuple[Finding, ...]:
@@ -141,13 +143,9 @@ class FindingsSpec:
         on_real = [f for f in self.targets if self.real and f.benchmark.startswith(f"{self.real}/")]
         return list(dict.fromkeys(s.experiment for f in self.claims + tuple(on_real) for s in f.rows))
 
-    def jobs(self, registration: str | None = None) -> list[tuple[str, str]]:
-        """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order.
-        ``registration``: every job registers with that group of conf/registration/ instead (its own
-        ``registration=`` / ``registration.*=`` overrides dropped; jobs that then coincide run once)."""
-        jobs = ((s.experiment, _with_registration(s.job, registration) if registration else s.job)
-                for f in self.all for s in f.rows)
-        return list(dict.fromkeys(jobs))
+    def jobs(self) -> list[tuple[str, str]]:
+        """Unique ``(experiment, overrides)`` jobs that run every row, the claims' then the targets', in order."""
+        return list(dict.fromkeys((s.experiment, s.job) for f in self.all for s in f.rows))
 
     def real_command(self) -> str:
         return (f"python -m pcrcg.evaluate mode=tracked experiments=[{','.join(self.real_experiments)}] "
@@ -160,27 +158,63 @@ def _with_registration(job: str, registration: str) -> str:
     return " ".join([*kept, f"registration={registration}"])
 
 
-def registration_overrides(registration: str, conf_dir: str | Path | None = None) -> list[str]:
-    """The report overrides that select the runs of ``registration`` (a group of conf/registration/ that
-    inherits ``default`` and sets only what differs): ``++where.registration.<key>='<value>'`` per setting of
-    the group file, e.g. ``inlier_ranking`` -> ``++where.registration.ransac.score='correspondences'``."""
+def _registration_dir(conf_dir: str | Path | None = None) -> Path:
+    from pcrcg.config import CONF_DIR
+
+    return Path(conf_dir or CONF_DIR) / "registration"
+
+
+def registration_where(registration: str, conf_dir: str | Path | None = None) -> dict[str, str]:
+    """The filters that select the runs of ``registration``, a group of conf/registration/ that inherits
+    ``default`` and sets only what differs: ``{"registration.<key>": "<value>"}`` per setting of its file,
+    e.g. ``inlier_ranking`` -> ``{"registration.ransac.score": "correspondences"}``."""
     from omegaconf import OmegaConf
 
-    from pcrcg.config import CONF_DIR
     from pcrcg.tracking.hashing import flatten
 
-    path = Path(conf_dir or CONF_DIR) / "registration" / f"{registration}.yaml"
-    if not path.is_file():
-        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
+    path = _registration_dir(conf_dir) / f"{registration}.yaml"
+    if registration == "default" or not path.is_file():
+        options = sorted(p.stem for p in path.parent.glob("*.yaml") if p.stem != "default")
         raise ConfigError("registration", registration, " | ".join(options))
     node = OmegaConf.to_container(OmegaConf.load(path))
     assert isinstance(node, dict)
     node.pop("defaults", None)
-    return [f"++where.registration.{k}='{v}'" for k, v in flatten(node).items()]
+    return {f"registration.{k}": v for k, v in flatten(node).items()}
+
+
+def registration_overrides(registration: str, conf_dir: str | Path | None = None) -> list[str]:
+    """The overrides of ``python -m pcrcg.report`` that select the runs of ``registration`` (the report-wide
+    ``where``): ``++where.registration.ransac.score='correspondences'`` for ``inlier_ranking``."""
+    return [f"++where.{k}='{v}'" for k, v in registration_where(registration, conf_dir).items()]
+
+
+def registration_of(defaults: Mapping[str, Any], conf_dir: str | Path | None = None) -> str | None:
+    """The group of conf/registration/ whose runs the report-wide ``defaults`` select: its own settings are all
+    among the ``registration.*`` filters, and every such filter has the group's value (``default.yaml``'s where
+    the group sets none): ``inlier_ranking`` for ``registration.ransac.score=correspondences``. None when no group
+    is (the paper's protocol, ``overlap``: the rows' own jobs)."""
+    from omegaconf import OmegaConf
+
+    from pcrcg.tracking.hashing import flatten
+
+    own = {k: str(v) for k, v in defaults.items() if k.startswith("registration.")}
+    if not own:
+        return None
+    base = OmegaConf.to_container(OmegaConf.load(_registration_dir(conf_dir) / "default.yaml"))
+    assert isinstance(base, dict)
+    base_flat = {f"registration.{k}": v for k, v in flatten(base).items()}
+    for path in sorted(_registration_dir(conf_dir).glob("*.yaml")):
+        if path.stem == "default":
+            continue
+        group = registration_where(path.stem, conf_dir)
+        if all(own.get(k) == v for k, v in group.items()) and all(
+                {**base_flat, **group}.get(k) == v for k, v in own.items()):
+            return path.stem
+    return None
 
 
 def _selection(raw: Mapping[str, Any], where: str, target: bool = False,
-               defaults: Mapping[str, Any] | None = None) -> Selection:
+               defaults: Mapping[str, Any] | None = None, registration: str | None = None) -> Selection:
     for key in ("name", "experiment", "where") + (() if target else ("paper",)):
         if not raw.get(key):
             kind = "target" if target else "finding"
@@ -193,8 +227,10 @@ def _selection(raw: Mapping[str, Any], where: str, target: bool = False,
         raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv")
     if not isinstance(paper, Mapping):
         raise ConfigError(f"{where}.paper", paper, "{table, method[, variant]} of paper_tables.csv, or leave it out")
-    return Selection(str(raw["name"]), str(raw["experiment"]), with_defaults(raw["where"], defaults or {}),
-                     str(raw.get("job") or ""),
+    job = str(raw.get("job") or "")
+    if registration and not any(str(k).startswith("registration.") for k in raw["where"]):
+        job = _with_registration(job, registration)  # the row's runs are those of the report-wide ranking
+    return Selection(str(raw["name"]), str(raw["experiment"]), with_defaults(raw["where"], defaults or {}), job,
                      str(paper.get("table") or ""), str(paper.get("method") or ""), str(paper.get("variant") or ""),
                      single="n_points" in raw)
 
@@ -209,9 +245,10 @@ def _sizes(raw: Any, where: str) -> tuple[int, ...] | None:
 
 
 def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, target: bool,
-             defaults: Mapping[str, Any] | None = None) -> Finding:
+             defaults: Mapping[str, Any] | None = None, registration: str | None = None) -> Finding:
     """One claim (``findings.claims[k-1]``) or target (``findings.targets[k-1]``, with its ``margin``)."""
-    rows = tuple(_selection(r, f"{where}.rows[{i}]", target, defaults) for i, r in enumerate(c.get("rows") or []))
+    rows = tuple(_selection(r, f"{where}.rows[{i}]", target, defaults, registration)
+                 for i, r in enumerate(c.get("rows") or []))
     names = [r.name for r in rows]
     if len(set(names)) != len(names) or len(rows) < 2:
         raise ConfigError(f"{where}.rows", names, "at least two rows with different names")
@@ -245,19 +282,22 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
 
 def parse_findings(raw: Mapping[str, Any] | None, defaults: Mapping[str, Any] | None = None) -> FindingsSpec | None:
     """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings). ``defaults``: the
-    report's flat filters that every row inherits unless it sets the key (:func:`pcrcg.report.spec.default_where`)."""
+    report's flat filters that every row inherits unless it sets the key (:func:`pcrcg.report.spec.default_where`).
+    When they select the runs of a registration group (:func:`registration_of`, e.g. ``inlier_ranking``), a row
+    that sets no ``registration.*`` filter of its own runs its job with that group (``registration=<group>``)."""
     if not raw:
         return None
-    claims = tuple(_finding(c, k, raw, f"findings.claims[{k - 1}]", False, defaults)
+    registration = registration_of(defaults) if defaults else None
+    claims = tuple(_finding(c, k, raw, f"findings.claims[{k - 1}]", False, defaults, registration)
                    for k, c in enumerate(raw.get("claims") or [], 1))
     if not claims:
         raise ConfigError("findings.claims", raw.get("claims"), "a list of claims (or findings: null)")
-    targets = tuple(_finding(c, k, raw, f"findings.targets[{k - 1}]", True, defaults)
+    targets = tuple(_finding(c, k, raw, f"findings.targets[{k - 1}]", True, defaults, registration)
                     for k, c in enumerate(raw.get("targets") or [], 1))
     real = raw.get("real")
     seeds = tuple(int(s) for s in (raw.get("seeds") or ()))
     return FindingsSpec(claims, str(real) if real else None, str(raw.get("real_root") or "data/real-redkitchen"),
-                        seeds, targets)
+                        seeds, targets, dict(defaults or {}), registration)
 
 
 # ---------------------------------------------------------------------------------------------- filling
@@ -342,7 +382,11 @@ class FilledFindings:
                 "its newest run's" if same_code(self.identity) else
                 "same config (identity=config): a row's seeds may come from different code versions")
         codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
-        return f"Runs counted: {rule}; code versions behind the findings: {codes}."
+        where = ", ".join(f"{k}={v}" for k, v in self.spec.where.items())
+        scope = (f"; a row counts only runs with {where} unless it sets the key itself (the report-wide `where`"
+                 + (f": the runs of registration={self.spec.registration}" if self.spec.registration else "")
+                 + ")") if where else ""
+        return f"Runs counted: {rule}{scope}; code versions behind the findings: {codes}."
 
 
 def line_verdict(sign: int, line: OrderingLine) -> str:
@@ -711,16 +755,18 @@ def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
 # ---------------------------------------------------------------------------------------------- jobs (sweeps/findings.sh)
 
 
-def load_findings(path: str | Path | None = None) -> FindingsSpec | None:
-    """The ``findings`` of conf/report.yaml (or of the report config at ``path``), with its ``where``."""
+def load_findings(path: str | Path | None = None, where: Mapping[str, Any] | None = None) -> FindingsSpec | None:
+    """The ``findings`` of conf/report.yaml (or of the report config at ``path``), with its ``where`` (flat
+    filters in ``where`` replace or add to it: :func:`registration_where`)."""
     from omegaconf import OmegaConf
 
     from pcrcg.config import CONF_DIR
 
     cfg = OmegaConf.load(path or CONF_DIR / "report.yaml")
-    node, where = cfg.get("findings"), cfg.get("where")
+    node, own = cfg.get("findings"), cfg.get("where")
+    defaults = default_where(OmegaConf.to_container(own, resolve=True) if own is not None else None)  # type: ignore[arg-type]
     return parse_findings(OmegaConf.to_container(node, resolve=True) if node is not None else None,  # type: ignore[arg-type]
-                          default_where(OmegaConf.to_container(where, resolve=True) if where is not None else None))  # type: ignore[arg-type]
+                          {**defaults, **(where or {})})
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -736,22 +782,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     what.add_argument("--report-overrides", action="store_true",
                       help="the overrides of `python -m pcrcg.report` that select the runs of --registration, one a line")
     p.add_argument("--registration", default=None,
-                   help="a group of conf/registration/ (e.g. inlier_ranking) that every job registers with instead")
+                   help="a group of conf/registration/ (e.g. inlier_ranking): the findings of the runs so registered "
+                        "(every row that sets no registration filter of its own runs its job with it)")
     p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
     args = p.parse_args(argv)
     try:  # a registration group that is not one: one line, before anything is printed
-        lines = registration_overrides(args.registration) if args.registration else []
+        where = registration_where(args.registration) if args.registration else {}
     except ConfigError as e:
         print(f"python -m pcrcg.report.findings: {e}", file=sys.stderr)
         return 2
     if args.report_overrides:
-        print("\n".join(lines))
+        print("\n".join(registration_overrides(args.registration) if args.registration else []))
         return 0
-    spec = load_findings(args.config)
+    spec = load_findings(args.config, where)
     if spec is None:
         return 0
     if args.jobs:
-        for exp, job in spec.jobs(args.registration):
+        for exp, job in spec.jobs():
             print(f"{exp} {job}".strip())
     elif args.experiments:
         print(",".join(spec.experiments))
