@@ -453,3 +453,44 @@ def test_the_forest_plot_keeps_our_scale_and_draws_a_far_paper_difference_at_the
     filled = NS(lines=lines, spec=NS(real=None))
     assert plot_findings(filled, tmp_path / "f.png").stat().st_size > 5_000
     assert plot_findings(NS(lines=[], spec=NS(real=None)), tmp_path / "none.png") is None
+
+
+def test_runs_ranked_by_inlier_correspondences_make_their_own_findings_and_never_mix_into_the_paper_protocol(tmp_path):
+    """main_results holds both rankings of the same jobs: by overlap (the paper's protocol, PCR-CG ahead) and by
+    inlier correspondences (Predator ahead). The default report counts only the first; the report made with
+    the overrides of `--report-overrides --registration inlier_ranking` only the second, says so, and prints
+    the commands of the missing seeds with the group."""
+    from pcrcg.report.findings import registration_overrides
+    from pcrcg.tracking.store import ensure_store
+    from pcrcg.tracking.tracker import RunTracker
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    ensure_store(uri)
+    rng, main, work = np.random.default_rng(11), RunTracker(uri, "main_results"), tmp_path / "work"
+    for seed in (0, 1):
+        weak = _base(rng, SCENES, 0.3)
+        strong = _more(rng, weak, 0.4)
+        for score, ahead in (("overlap", "PCR-CG"), ("correspondences", "Predator")):
+            for label in ("Predator", "PCR-CG"):
+                _run(main, work, f"{label} {score} seed={seed}",
+                     {"seed": seed, "encoder2d.name": "pri3d", "registration.ransac.score": score},
+                     {"label": label}, strong if label == ahead else weak)
+    [override] = registration_overrides("inlier_ranking")
+    key, value = override.removeprefix("++where.").split("=")
+    assert (key, value) == ("registration.ransac.score", "'correspondences'")
+    paper = generate_report(_cfg(tmp_path / "paper", uri), base_dir=tmp_path)
+    inlier = generate_report(_cfg(tmp_path / "inlier", uri, where={"registration": {"ransac": {"score": "correspondences"}}}),
+                             base_dir=tmp_path)
+    for result, verdict in ((paper, HOLDS), (inlier, REVERSED)):
+        f = result.findings
+        assert f.claim_verdict(f.spec.claims[0]) == verdict
+        lines = [ln for ln in f.lines if ln.finding.number == 1 and not ln.finding.is_target]
+        assert all(len(ln.ours.ref_runs) == 2 and len(ln.ours.row_runs) == 2 for ln in lines)
+    assert paper.findings.spec.registration is None and inlier.findings.spec.registration == "inlier_ranking"
+    md = (tmp_path / "inlier" / "findings.md").read_text()
+    assert "counts the runs registered with `registration=inlier_ranking`, not the paper's protocol" in md
+    assert ("`python -m pcrcg.run +experiment=main_results features=none registration=inlier_ranking profile=cpu "
+            "seed=2 -m`") in md
+    assert ("`python -m pcrcg.run +experiment=main_results features=none profile=cpu seed=2 -m`"
+            in (tmp_path / "paper" / "findings.md").read_text())
+    assert "`registration.ransac.score=correspondences`" in (tmp_path / "inlier" / "README.md").read_text()

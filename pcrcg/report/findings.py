@@ -624,7 +624,10 @@ def intro(filled: FilledFindings) -> str:
            "paired bootstrap interval over the test pairs, as the tables' orderings")
     real = (f" The {filled.spec.real} columns: the same runs evaluated on the real scene "
             f"(`{filled.spec.real_command()}`); few pairs, wide intervals." if filled.spec.real else "")
-    return ("Δ = compared − reference, in points. Paper Δ: from the paper's tables (paper_tables.csv). Ours: the "
+    reg = filled.spec.registration
+    ranked = (f"Every row that sets no registration filter of its own counts the runs registered with "
+              f"`registration={reg}`, not the paper's protocol (the report-wide `where`). " if reg else "")
+    return (ranked + "Δ = compared − reference, in points. Paper Δ: from the paper's tables (paper_tables.csv). Ours: the "
             "difference of our means over seeds, ± the std of the per-seed difference where both rows ran two or "
             f"more seeds. Interval: {how}. Verdict: *holds* (the interval excludes 0 on the claim's side), "
             "*reversed* (on the other side), *not resolved* (it includes 0, or no interval: see the note), "
