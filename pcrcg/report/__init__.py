@@ -30,7 +30,7 @@ from pcrcg.report.orderings import StatsSettings, check_orderings
 from pcrcg.report.outcomes import OutcomeSource
 from pcrcg.report.render import to_latex, to_markdown, write_csv, write_orderings_csv
 from pcrcg.report.load import load_runs, newest_profile
-from pcrcg.report.spec import TableSpec, default_where, parse_specs
+from pcrcg.report.spec import TableSpec, parse_specs, report_where
 from pcrcg.report.tables import FilledTable, fill_table, load_paper, protocol_summary, trend_agreement
 
 if TYPE_CHECKING:  # imported where used: `python -m pcrcg.report.findings` runs that module as a script
@@ -85,7 +85,7 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
 
     c = _plain(cfg)
     base = Path(base_dir) if base_dir is not None else Path.cwd()
-    defaults = default_where(c.get("where"))
+    defaults = report_where(c)
     specs = parse_specs(c["specs"], defaults)
     names = _select(specs, c.get("tables", "all"))
     settings = StatsSettings.from_dict(c.get("stats"))  # a bad setting stops the report before it reads or writes
@@ -150,8 +150,7 @@ def write_experiment_tables(experiment: str, uri: str, profile: str | None, out_
     for key in ("hydra", "defaults"):
         report_cfg.pop(key, None)
     specs = parse_specs(OmegaConf.to_container(report_cfg.specs, resolve=True),  # type: ignore[arg-type]
-                        default_where(OmegaConf.to_container(report_cfg.where, resolve=True)  # type: ignore[arg-type]
-                                      if report_cfg.get("where") is not None else None))
+                        report_where(report_cfg))
     names = tables_for_experiment(specs, experiment)
     if not names:
         print(f"{prefix} experiment {experiment!r} feeds no paper table; the tables come from "

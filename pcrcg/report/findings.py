@@ -43,7 +43,7 @@ import pandas as pd
 from pcrcg.errors import ConfigError
 from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_orderings, compare_columns,
                                     select_columns)
-from pcrcg.report.spec import Column, Comparison, Row, TableSpec, default_where, run_command, with_defaults
+from pcrcg.report.spec import Column, Comparison, Row, TableSpec, report_where, run_command, with_defaults
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
 from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
@@ -164,22 +164,28 @@ def _registration_dir(conf_dir: str | Path | None = None) -> Path:
     return Path(conf_dir or CONF_DIR) / "registration"
 
 
-def registration_where(registration: str, conf_dir: str | Path | None = None) -> dict[str, str]:
-    """The filters that select the runs of ``registration``, a group of conf/registration/ that inherits
-    ``default`` and sets only what differs: ``{"registration.<key>": "<value>"}`` per setting of its file,
-    e.g. ``inlier_ranking`` -> ``{"registration.ransac.score": "correspondences"}``."""
+def _settings(path: Path) -> dict[str, str]:
+    """A group file of conf/registration/ as flat ``{"registration.<key>": "<value>"}``, without its defaults list."""
     from omegaconf import OmegaConf
 
     from pcrcg.tracking.hashing import flatten
 
+    node = OmegaConf.to_container(OmegaConf.load(path))
+    if not isinstance(node, dict):
+        raise ConfigError("registration", str(path), "a mapping of settings")
+    node.pop("defaults", None)
+    return {f"registration.{k}": v for k, v in flatten(node).items()}
+
+
+def registration_where(registration: str, conf_dir: str | Path | None = None) -> dict[str, str]:
+    """The filters that select the runs of ``registration``, a group of conf/registration/ that inherits
+    ``default`` and sets only what differs: ``{"registration.<key>": "<value>"}`` per setting of its file,
+    e.g. ``inlier_ranking`` -> ``{"registration.ransac.score": "correspondences"}``."""
     path = _registration_dir(conf_dir) / f"{registration}.yaml"
     if registration == "default" or not path.is_file():
         options = sorted(p.stem for p in path.parent.glob("*.yaml") if p.stem != "default")
         raise ConfigError("registration", registration, " | ".join(options))
-    node = OmegaConf.to_container(OmegaConf.load(path))
-    assert isinstance(node, dict)
-    node.pop("defaults", None)
-    return {f"registration.{k}": v for k, v in flatten(node).items()}
+    return _settings(path)
 
 
 def registration_overrides(registration: str, conf_dir: str | Path | None = None) -> list[str]:
@@ -193,22 +199,15 @@ def registration_of(defaults: Mapping[str, Any], conf_dir: str | Path | None = N
     among the ``registration.*`` filters, and every such filter has the group's value (``default.yaml``'s where
     the group sets none): ``inlier_ranking`` for ``registration.ransac.score=correspondences``. None when no group
     is (the paper's protocol, ``overlap``: the rows' own jobs)."""
-    from omegaconf import OmegaConf
-
-    from pcrcg.tracking.hashing import flatten
-
     own = {k: str(v) for k, v in defaults.items() if k.startswith("registration.")}
     if not own:
         return None
-    base = OmegaConf.to_container(OmegaConf.load(_registration_dir(conf_dir) / "default.yaml"))
-    assert isinstance(base, dict)
-    base_flat = {f"registration.{k}": v for k, v in flatten(base).items()}
+    base = _settings(_registration_dir(conf_dir) / "default.yaml")
     for path in sorted(_registration_dir(conf_dir).glob("*.yaml")):
         if path.stem == "default":
             continue
-        group = registration_where(path.stem, conf_dir)
-        if all(own.get(k) == v for k, v in group.items()) and all(
-                {**base_flat, **group}.get(k) == v for k, v in own.items()):
+        group = _settings(path)
+        if all(own.get(k) == v for k, v in group.items()) and all({**base, **group}.get(k) == v for k, v in own.items()):
             return path.stem
     return None
 
@@ -282,7 +281,7 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
 
 def parse_findings(raw: Mapping[str, Any] | None, defaults: Mapping[str, Any] | None = None) -> FindingsSpec | None:
     """``findings`` node of conf/report.yaml -> :class:`FindingsSpec` (None: no findings). ``defaults``: the
-    report's flat filters that every row inherits unless it sets the key (:func:`pcrcg.report.spec.default_where`).
+    report's flat filters that every row inherits unless it sets the key (:func:`pcrcg.report.spec.report_where`).
     When they select the runs of a registration group (:func:`registration_of`, e.g. ``inlier_ranking``), a row
     that sets no ``registration.*`` filter of its own runs its job with that group (``registration=<group>``)."""
     if not raw:
@@ -766,10 +765,9 @@ def load_findings(path: str | Path | None = None, where: Mapping[str, Any] | Non
     from pcrcg.config import CONF_DIR
 
     cfg = OmegaConf.load(path or CONF_DIR / "report.yaml")
-    node, own = cfg.get("findings"), cfg.get("where")
-    defaults = default_where(OmegaConf.to_container(own, resolve=True) if own is not None else None)  # type: ignore[arg-type]
+    node = cfg.get("findings")
     return parse_findings(OmegaConf.to_container(node, resolve=True) if node is not None else None,  # type: ignore[arg-type]
-                          {**defaults, **(where or {})})
+                          {**report_where(cfg), **(where or {})})
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -256,6 +256,14 @@ def default_where(node: Mapping[str, Any] | None) -> dict[str, Any]:
     return out
 
 
+def report_where(cfg: Any) -> dict[str, Any]:
+    """The flat filters of a loaded report config's ``where`` (an OmegaConf node or a mapping; absent: none)."""
+    from omegaconf import OmegaConf
+
+    node = cfg.get("where")
+    return default_where(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node)
+
+
 def with_defaults(where: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict[str, Any]:
     """``where`` with each of the report's default filters it does not set itself (a row's own value wins)."""
     return {**where, **{k: v for k, v in defaults.items() if k not in where}}
