@@ -210,6 +210,22 @@ def test_cache_computes_features_once_per_image_and_matches_once_per_pair(pair, 
     assert other.misses == 4 and other.feature_hits == 4 and learned.CALLS["disk"] == n_disk
 
 
+@needs_weights
+def test_matching_on_a_cold_cache_leaves_the_callers_random_draws_alone(pair, tmp_path, monkeypatch):
+    """The networks are built at the first miss; their random init must not shift the process's later
+    draws, else a training run's result depends on whether its matches were cached (measured: a tiny
+    PCR-CG run on a cold match cache trained another model than on a warm one)."""
+    import torch
+
+    monkeypatch.setattr(learned, "_MODELS", {})  # as in a fresh process: nothing built yet
+    torch.manual_seed(123)
+    state = torch.get_rng_state().clone()
+    first = match_views(pair.src_views[:2], pair.tgt_views[:2], lg(), MatchCache(tmp_path / "dumps"))
+    learned.dense_disk_maps([pair.src_views[0].color], dim=16)
+    assert sum(len(m) for m in first.values()) > 0 and len(learned._MODELS) == 2
+    assert torch.equal(torch.get_rng_state(), state)
+
+
 # --------------------------------------------------------------------------- view pairs
 
 

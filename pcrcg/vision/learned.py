@@ -139,6 +139,17 @@ def _strict(model: Any, state: dict[str, Any], path: Path, what: str, allowed_mi
                               f"unexpected {unexpected[:4]}{'...' if len(unexpected) > 4 else ''}")
 
 
+def _rng_untouched() -> Any:
+    """A context in which torch's global CPU generator may be drawn from without effect outside it.
+
+    The networks are built lazily, at the first image or pair that is not in the match cache; their
+    random initialisation (overwritten by the release's weights) would otherwise shift every later draw
+    of the process, so that a training run's result depended on whether its matches were cached."""
+    import torch
+
+    return torch.random.fork_rng(devices=[])
+
+
 def load_disk(path: str | Path, device: Any = "cpu") -> Any:
     """kornia's DISK with ``torch.load(path)["extractor"]`` loaded strictly, eval mode, on ``device``."""
     import torch
@@ -150,7 +161,8 @@ def load_disk(path: str | Path, device: Any = "cpu") -> Any:
         state = _read_state(path)
         if "extractor" not in state or not isinstance(state["extractor"], dict):
             raise DataError(path, f"has no 'extractor' state dict (keys {sorted(state)[:4]}): not DISK's {DISK_FILE}")
-        model = KF.DISK(desc_dim=DESC_DIM)
+        with _rng_untouched():  # its random init is overwritten: it must not move the caller's draws
+            model = KF.DISK(desc_dim=DESC_DIM)
         _strict(model, state["extractor"], path, "kornia's DISK")
         _MODELS[key] = model.eval().requires_grad_(False).to(device)
     return _MODELS[key]
@@ -185,7 +197,8 @@ def load_lightglue(path: str | Path, device: Any = "cpu", filter_threshold: floa
     if key not in _MODELS:
         KF = _kornia()
         state = lightglue_state(_read_state(path), path)
-        model = KF.LightGlue(None, input_dim=DESC_DIM, weights=None)
+        with _rng_untouched():
+            model = KF.LightGlue(None, input_dim=DESC_DIM, weights=None)
         _strict(model, state, path, "kornia's LightGlue(input_dim=128)", allowed_missing=("confidence_thresholds",))
         _MODELS[key] = model.eval().requires_grad_(False).to(device)
     model = _MODELS[key]
