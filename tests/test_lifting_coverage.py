@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pcrcg.lifting.coverage import check_growth, coverage_sweep, format_rows, load_samples, main
+from pcrcg.lifting.coverage import check_growth, coverage_sweep, format_rows, load_samples, main, overlap_coloring
 from pcrcg.vision.matching import MatchCache
 
 
@@ -26,6 +26,33 @@ def test_sweep_grows_as_in_the_paper(samples, tmp_path_factory):
     # explicit covers only the matched regions: well below implicit, growing with the window
     assert by[("window", "explicit", 2, 3)] < 0.1 < by[("window", "explicit", 2, 17)] < by[("views", "implicit", 2, 11)]
     assert cache.misses == 6  # 3 view pairs x 2 samples, computed once for all 10 settings
+
+
+def test_overlap_coloring_on_known_geometry():
+    # src: 4 points on a line; the pose moves them 1 m along x onto the target's first 3 (the 4th has none
+    # within the radius); target point 3 lies far away
+    src = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [5.0, 0, 0]])
+    tgt = np.array([[1.0, 0, 0], [1.1, 0, 0], [1.2, 0, 0], [9.0, 0, 0]])
+    T = np.eye(4)
+    T[0, 3] = 1.0
+    # overlap = src 0..2 <-> tgt 0..2: colored both (0), src only (1), neither (2); src 3 is not in the overlap
+    both, one = overlap_coloring(np.array([1, 1, 0, 1], bool), np.array([1, 0, 0, 1], bool), src, tgt, T, 0.03)
+    assert (both, one) == pytest.approx((1 / 3, 1 / 3))
+    # target only colored: also one side
+    assert overlap_coloring(np.zeros(4, bool), np.ones(4, bool), src, tgt, T, 0.03) == pytest.approx((0.0, 1.0))
+    # the identity leaves no source point near the target: no overlap to color
+    assert overlap_coloring(np.ones(4, bool), np.ones(4, bool), src, tgt, np.eye(4), 0.03) is None
+
+
+def test_sweep_reports_how_the_overlap_is_colored(samples):
+    rows = coverage_sweep(samples, views=(1, 2), windows=(11,))
+    by = {(r.sweep, r.projection, r.views): r for r in rows}
+    one, two = by[("views", "implicit", 1)], by[("views", "implicit", 2)]
+    for r in rows:
+        assert 0.0 <= r.overlap_both and 0.0 <= r.overlap_one_side and r.overlap_both + r.overlap_one_side <= 1.0
+    # one view per fragment colors less of the shared surface on both sides than two
+    assert one.overlap_both < two.overlap_both
+    assert "overlap: both" in format_rows(rows)
 
 
 def test_check_growth_detects_violations():

@@ -20,7 +20,8 @@ Public API
 * :func:`lift_pair` ``(lifter, sample: PairSample, matches={(a, b): Matches} | None, device=None)
   -> LiftedPair(src_feats, tgt_feats, src_covered, tgt_covered, color_coverage, n_matches)``;
   ``color_coverage`` = fraction of the points of *both* fragments that received a feature.
-* :func:`pair_coverage` ``(lifter, sample, matches=None) -> float`` (no feature maps: cheap).
+* :func:`pair_coverage` ``(lifter, sample, matches=None) -> float`` (no feature maps: cheap);
+  :func:`pair_covered` ``(lifter, sample, matches=None) -> (src_covered (N,), tgt_covered (M,))`` bool.
 * :func:`build_lifter` ``(cfg)`` from a root config with ``projection``, ``features``,
   ``encoder2d``, ``matcher2d``.
 * :mod:`pcrcg.lifting.coverage`: ``coverage_sweep`` (views 1/2/3 and windows 3/7/11/17) and its CLI
@@ -44,6 +45,7 @@ from pcrcg.lifting.projection import (
     keypoints_per_view,
     lift_pair,
     pair_coverage,
+    pair_covered,
     project_points,
     window_weight_map,
 )
@@ -60,6 +62,7 @@ __all__ = [
     "keypoints_per_view",
     "lift_pair",
     "pair_coverage",
+    "pair_covered",
     "project_points",
     "window_weight_map",
 ]

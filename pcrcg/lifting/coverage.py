@@ -6,6 +6,12 @@ windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrc
 Other keys: ``views=[1,2,3] windows=[3,7,11,17] base_views=2 base_window=11
 depth_tolerance=0.1 image_size=null method=sift|orb|lightglue pairs=paper|all|covisible cache_dir=cache/matches``.
 Coverage depends only on geometry and matches, so no feature map is computed.
+
+Where the pairs carry their ground-truth pose (a benchmark's or a split's pairs: ``split=3DLoMatch``), each row
+also says how the *overlap* is colored: of the source points within ``overlap_radius`` (m, default 0.0375:
+Predator's 1.5 x 2.5 cm) of the target after the pose, the share colored in both fragments (the same surface
+gets a lifted feature on both sides) and in one fragment only (the same surface enters the 3D network with a
+feature on one side and the unseen value on the other). Only the first kind can help matching.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from pcrcg.lifting.config import LiftingConfig
-from pcrcg.lifting.projection import ColorLifter, pair_coverage
+from pcrcg.lifting.projection import ColorLifter, color_coverage, pair_covered
 from pcrcg.vision.matching import MatchCache, MatcherConfig, match_views
 
 
@@ -28,6 +34,29 @@ class CoverageRow:
     window_size: int
     color_coverage: float  # mean over pairs
     n_pairs: int
+    # of the overlap's source points, mean over the pairs with a pose and an overlap (nan without any):
+    overlap_both: float = float("nan")  # colored in both fragments
+    overlap_one_side: float = float("nan")  # colored in one fragment only
+
+
+def overlap_coloring(src_covered: np.ndarray, tgt_covered: np.ndarray, src_points: np.ndarray,
+                     tgt_points: np.ndarray, transform: np.ndarray, radius: float) -> tuple[float, float] | None:
+    """(both, one_side): of the source points within ``radius`` of a target point once moved by ``transform``
+    (4, 4) (src -> tgt), the share colored in both fragments (the point and its nearest target point) and
+    in exactly one. ``src_covered`` (N,) / ``tgt_covered`` (M,) bool, ``src_points`` (N, 3), ``tgt_points``
+    (M, 3). None when no source point is that close (no overlap to color)."""
+    from scipy.spatial import cKDTree
+
+    if len(src_points) == 0 or len(tgt_points) == 0:
+        return None
+    T = np.asarray(transform, np.float64)
+    moved = np.asarray(src_points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    dist, nn = cKDTree(np.asarray(tgt_points, np.float64)).query(moved, distance_upper_bound=float(radius))
+    near = np.isfinite(dist)
+    if not near.any():
+        return None
+    a, b = np.asarray(src_covered, bool)[near], np.asarray(tgt_covered, bool)[nn[near]]
+    return float((a & b).mean()), float((a ^ b).mean())
 
 
 def coverage_sweep(
@@ -41,6 +70,7 @@ def coverage_sweep(
     matcher: MatcherConfig | None = None,
     cache: MatchCache | None = None,
     progress: bool = False,
+    overlap_radius: float = 0.0375,
 ) -> list[CoverageRow]:
     """Mean ``color_coverage`` over ``samples`` (PairSample with >= max(views) views each) for
 
@@ -49,6 +79,7 @@ def coverage_sweep(
 
     The 2D matches of each pair are computed once (all views, ``matcher.pairs``) and reused; with
     ``pairs=covisible`` (which ranks the view pairs of the views in use) once per number of views.
+    Samples with a ``transform`` also give :func:`overlap_coloring` (``overlap_radius``, m).
     """
     from tqdm import tqdm
 
@@ -62,6 +93,7 @@ def coverage_sweep(
         settings.append(("window", "explicit", int(base_views), int(w)))
     lifters = {s: ColorLifter(LiftingConfig(s[1], "none", s[2], s[3], depth_tolerance, image_size=size)) for s in settings}
     sums = {s: 0.0 for s in settings}
+    overlap: dict[tuple[str, str, int, int], list[tuple[float, float]]] = {s: [] for s in settings}
     n = 0
     for sample in tqdm(samples, desc="coverage", disable=not progress):
         nv = max(max(views), base_views)
@@ -73,11 +105,19 @@ def coverage_sweep(
             every = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher, cache, T)
             by_views = {s[2]: every for s in settings}
         for s in settings:
-            sums[s] += pair_coverage(lifters[s], sample, by_views[s[2]])
+            cs, ct = pair_covered(lifters[s], sample, by_views[s[2]])
+            sums[s] += color_coverage(cs, ct)
+            if T is not None:
+                o = overlap_coloring(cs.cpu().numpy(), ct.cpu().numpy(), np.asarray(sample.src_points),
+                                     np.asarray(sample.tgt_points), T, overlap_radius)
+                if o is not None:
+                    overlap[s].append(o)
         n += 1
     if n == 0:
         raise ValueError("coverage_sweep: no pairs")
-    return [CoverageRow(s[0], s[1], s[2], s[3], sums[s] / n, n) for s in settings]
+    nan = (float("nan"), float("nan"))
+    return [CoverageRow(s[0], s[1], s[2], s[3], sums[s] / n, n,
+                        *(tuple(np.mean(overlap[s], axis=0)) if overlap[s] else nan)) for s in settings]
 
 
 def check_growth(rows: Sequence[CoverageRow]) -> dict[str, bool]:
@@ -94,10 +134,12 @@ def check_growth(rows: Sequence[CoverageRow]) -> dict[str, bool]:
 
 
 def format_rows(rows: Sequence[CoverageRow]) -> str:
-    lines = [f"{'sweep':<7} {'projection':<9} {'views':>5} {'window':>6} {'color_coverage':>15}"]
+    lines = [f"{'sweep':<7} {'projection':<9} {'views':>5} {'window':>6} {'color_coverage':>15} "
+             f"{'overlap: both':>14} {'one side':>9}"]
     for r in rows:
         win = str(r.window_size) if r.projection == "explicit" else "-"
-        lines.append(f"{r.sweep:<7} {r.projection:<9} {r.views:>5} {win:>6} {r.color_coverage:>15.4f}")
+        lines.append(f"{r.sweep:<7} {r.projection:<9} {r.views:>5} {win:>6} {r.color_coverage:>15.4f} "
+                     f"{r.overlap_both:>14.4f} {r.overlap_one_side:>9.4f}")
     lines.append(f"({rows[0].n_pairs} pairs)")
     return "\n".join(lines)
 
@@ -137,6 +179,7 @@ def main(argv: Sequence[str] | None = None) -> list[CoverageRow]:
         matcher=MatcherConfig.from_cfg(mnode),
         cache=MatchCache(cache_dir) if cache_dir else None,
         progress=True,
+        overlap_radius=float(args.get("overlap_radius", 0.0375)),
     )
     print(f"data: {root or 'toy scene (pcrcg.testing.scenes)'}")
     print(format_rows(rows))

@@ -370,15 +370,21 @@ def lift_pair(lifter: ColorLifter, sample: Any, matches: Mapping | None = None,
     return LiftedPair(fs, ft, cs, ct, color_coverage(cs, ct), n_matches)
 
 
-def pair_coverage(lifter: ColorLifter, sample: Any, matches: Mapping | None = None) -> float:
-    """``color_coverage`` of a pair without computing any feature map (cheap, for sweeps)."""
-    if lifter.cfg.projection == "none":
-        return 0.0
+def pair_covered(lifter: ColorLifter, sample: Any, matches: Mapping | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which points of the pair's src (N,) and tgt (M,) would receive a feature (bool), without computing
+    any feature map."""
     dev = _module_device(lifter)
     src_w, tgt_w, _ = pair_weights(lifter, sample, matches)
     cs = lifter.coverage(_as_points(sample.src_points, dev), sample.src_views, src_w)
     ct = lifter.coverage(_as_points(sample.tgt_points, dev), sample.tgt_views, tgt_w)
-    return color_coverage(cs, ct)
+    return cs, ct
+
+
+def pair_coverage(lifter: ColorLifter, sample: Any, matches: Mapping | None = None) -> float:
+    """``color_coverage`` of a pair without computing any feature map (cheap, for sweeps)."""
+    if lifter.cfg.projection == "none":
+        return 0.0
+    return color_coverage(*pair_covered(lifter, sample, matches))
 
 
 def _as_points(x: Any, device: torch.device) -> torch.Tensor:
