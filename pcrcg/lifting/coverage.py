@@ -21,6 +21,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from pcrcg.geometry import transform_points
 from pcrcg.lifting.config import LiftingConfig
 from pcrcg.lifting.projection import ColorLifter, color_coverage, pair_covered
 from pcrcg.vision.matching import MatchCache, MatcherConfig, match_views
@@ -39,24 +40,33 @@ class CoverageRow:
     overlap_one_side: float = float("nan")  # colored in one fragment only
 
 
-def overlap_coloring(src_covered: np.ndarray, tgt_covered: np.ndarray, src_points: np.ndarray,
-                     tgt_points: np.ndarray, transform: np.ndarray, radius: float) -> tuple[float, float] | None:
-    """(both, one_side): of the source points within ``radius`` of a target point once moved by ``transform``
-    (4, 4) (src -> tgt), the share colored in both fragments (the point and its nearest target point) and
-    in exactly one. ``src_covered`` (N,) / ``tgt_covered`` (M,) bool, ``src_points`` (N, 3), ``tgt_points``
-    (M, 3). None when no source point is that close (no overlap to color)."""
+def overlap_pairs(src_points: np.ndarray, tgt_points: np.ndarray, transform: np.ndarray,
+                  radius: float) -> np.ndarray | None:
+    """The overlap of a pair: (K, 2) int64 rows (source point, its nearest target point) for the source points
+    (N, 3) within ``radius`` of a target point (M, 3) once moved by ``transform`` (4, 4, src -> tgt); None
+    when no source point is that close. Depends on the pair only: computed once for every setting."""
     from scipy.spatial import cKDTree
 
     if len(src_points) == 0 or len(tgt_points) == 0:
         return None
-    T = np.asarray(transform, np.float64)
-    moved = np.asarray(src_points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    moved = transform_points(np.asarray(transform, np.float64), np.asarray(src_points, np.float64))
     dist, nn = cKDTree(np.asarray(tgt_points, np.float64)).query(moved, distance_upper_bound=float(radius))
-    near = np.isfinite(dist)
-    if not near.any():
-        return None
-    a, b = np.asarray(src_covered, bool)[near], np.asarray(tgt_covered, bool)[nn[near]]
+    near = np.flatnonzero(np.isfinite(dist))
+    return np.stack([near, nn[near]], axis=1).astype(np.int64) if len(near) else None
+
+
+def coloring_of(src_covered: np.ndarray, tgt_covered: np.ndarray, pairs: np.ndarray) -> tuple[float, float]:
+    """(both, one_side): the share of the overlap ``pairs`` (:func:`overlap_pairs`) colored in both fragments
+    and in exactly one. ``src_covered`` (N,) / ``tgt_covered`` (M,) bool."""
+    a, b = np.asarray(src_covered, bool)[pairs[:, 0]], np.asarray(tgt_covered, bool)[pairs[:, 1]]
     return float((a & b).mean()), float((a ^ b).mean())
+
+
+def overlap_coloring(src_covered: np.ndarray, tgt_covered: np.ndarray, src_points: np.ndarray,
+                     tgt_points: np.ndarray, transform: np.ndarray, radius: float) -> tuple[float, float] | None:
+    """(both, one_side) of one pair (:func:`overlap_pairs`, then :func:`coloring_of`); None without overlap."""
+    pairs = overlap_pairs(src_points, tgt_points, transform, radius)
+    return None if pairs is None else coloring_of(src_covered, tgt_covered, pairs)
 
 
 def coverage_sweep(
@@ -79,7 +89,8 @@ def coverage_sweep(
 
     The 2D matches of each pair are computed once (all views, ``matcher.pairs``) and reused; with
     ``pairs=covisible`` (which ranks the view pairs of the views in use) once per number of views.
-    Samples with a ``transform`` also give :func:`overlap_coloring` (``overlap_radius``, m).
+    Samples with a ``transform`` also give :func:`coloring_of` their overlap (:func:`overlap_pairs`, ``overlap_radius`` m,
+    found once per pair).
     """
     from tqdm import tqdm
 
@@ -104,14 +115,13 @@ def coverage_sweep(
         else:
             every = match_views(sample.src_views[:nv], sample.tgt_views[:nv], matcher, cache, T)
             by_views = {s[2]: every for s in settings}
+        pairs = None if T is None else overlap_pairs(np.asarray(sample.src_points), np.asarray(sample.tgt_points),
+                                                     T, overlap_radius)
         for s in settings:
             cs, ct = pair_covered(lifters[s], sample, by_views[s[2]])
             sums[s] += color_coverage(cs, ct)
-            if T is not None:
-                o = overlap_coloring(cs.cpu().numpy(), ct.cpu().numpy(), np.asarray(sample.src_points),
-                                     np.asarray(sample.tgt_points), T, overlap_radius)
-                if o is not None:
-                    overlap[s].append(o)
+            if pairs is not None:
+                overlap[s].append(coloring_of(cs.cpu().numpy(), ct.cpu().numpy(), pairs))
         n += 1
     if n == 0:
         raise ValueError("coverage_sweep: no pairs")
