@@ -169,6 +169,12 @@ def test_covisibility_of_two_views_of_a_wall():
     bins = C.matches_by_covisibility([0.05, 0.4, 0.45, 1.0, float("nan")], [0, 3, 5, 20, 7])
     assert [(b["n"], b["mean"]) for b in bins] == [(1, 0.0), (2, 4.0), (1, 20.0)]
     assert bins[0]["verified_share"] == 0.0 and bins[1]["verified_share"] == 1.0
+    per = C.matches_by_benchmark(["3DMatch", "3DLoMatch", "3DMatch", "3DMatch"], [10, 0, 0, 20])
+    assert (per["3DMatch"]["n"], per["3DMatch"]["mean"]) == (3, 10.0) and per["3DLoMatch"]["mean"] == 0.0
+    assert per["3DMatch"]["verified_share"] == pytest.approx(2 / 3) and per["3DLoMatch"]["verified_share"] == 0.0
+    assert list(C.matches_by_benchmark(["3DLoMatch"], [4])) == ["3DLoMatch"]
+    with pytest.raises(ValueError, match="2 benchmarks for 1 view pairs"):
+        C.matches_by_benchmark(["3DMatch", "3DMatch"], [1])
     s = M.summarize([1, 2, 3, 4, float("nan"), None])
     assert s["n"] == 4 and s["mean"] == 2.5 and s["min"] == 1 and s["max"] == 4
     assert M.summarize([])["mean"] is None
@@ -249,6 +255,9 @@ def test_cli_end_to_end_on_tiny(tiny_root, tmp_path, capsys):
     assert col["sift"]["grid"]["keypoints"]["mean"] > 0
     assert col["sift"]["covisibility"]["n"] == col["sift"]["view_pairs"]  # every view pair has depth and pose
     assert sum(b["n"] for b in col["sift"]["grid_by_covisibility"]) == col["sift"]["view_pairs"]
+    per = col["sift"]["grid_by_benchmark"]
+    assert {b: per[b]["n"] for b in per} == {b: 2 * col["fpfh"][b]["pairs"] for b in per}
+    assert "of 3DMatch / 3DLoMatch pairs" in md
     assert "co-visibility" in md
     assert 0 <= col["depth"]["mean"] < 1 and col["depth"]["frames"] == 12
     assert col["depth"]["median_m"]["n"] == 12 and 0.4 < col["depth"]["median_m"]["median"] < 4.5

@@ -34,7 +34,9 @@ Rows (see :mod:`pcrcg.data.stats.measures` for the definitions)
       run; frame ids from ``cloud_bin_<i>.info.txt``), and the grid's matches per bin of the view
       pair's co-visibility (:func:`pcrcg.data.stats.measures.covisibility`: the share of the first
       frame's depth pixels that the second frame sees at a consistent depth), so that data sets whose
-      pairs see each other more or less compare at equal co-visibility;
+      pairs see each other more or less compare at equal co-visibility, and per benchmark (the view
+      pairs of 3DMatch pairs and of 3DLoMatch pairs apart: a sample that mixes the two in other
+      proportions than another compares like with like);
     * depth holes: share of zero-depth pixels per frame, and the frames' median depth, over at most
       ``--frames`` frames of the measured fragments.
     Image rows print "–" for a data set without RGB-D frames.

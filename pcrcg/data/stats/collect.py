@@ -371,21 +371,33 @@ def matches_by_covisibility(covis: list[float], matches: list[int]) -> list[dict
     return out
 
 
+def matches_by_benchmark(benchmarks: list[str], matches: list[int]) -> dict[str, dict[str, Any]]:
+    """Per benchmark of :data:`BENCHMARKS` that has view pairs: :func:`measures.summarize` of their
+    verified matches and the share with any (``benchmarks[k]`` is the benchmark of view pair k)."""
+    b, m = np.asarray(benchmarks, dtype=object), np.asarray(matches, dtype=np.float64)
+    if len(b) != len(m):
+        raise ValueError(f"{len(b)} benchmarks for {len(m)} view pairs")
+    return {k: {**M.summarize(m[b == k]), "verified_share": float(np.mean(m[b == k] > 0))}
+            for k in BENCHMARKS if np.any(b == k)}
+
+
 def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
                 progress: bool = True) -> dict[str, Any] | None:
     """SIFT keypoints per image and verified matches per view pair (the project's matcher at the
     projection's grid and at native size) over the selected pairs' view pairs, and the view pairs'
-    co-visibility (:func:`view_covisibility`) with the grid's matches per co-visibility bin. None
-    without frames."""
+    co-visibility (:func:`view_covisibility`) with the grid's matches per co-visibility bin and per
+    benchmark (``grid_by_benchmark``: the view pairs of 3DMatch pairs and of 3DLoMatch pairs apart, so
+    that data sets that mix the two in other proportions compare like with like). None without frames."""
     from pcrcg.vision.matching import match_images
 
     if not src.has_frames or not src.infos:
         return None
-    vps, skipped = [], 0
+    vps, bench, skipped = [], [], 0
     for b in BENCHMARKS:
         if b in sel:
             v, s = view_pairs_of(src, sel[b]["selected"])
             vps += v
+            bench += [b] * len(v)
             skipped += s
     if not vps:
         return None
@@ -415,6 +427,7 @@ def image_stats(src: Source, sel: dict[str, dict[str, Any]], cfg: StatsConfig,
                   "max_keypoints": int(mc.max_keypoints)}
     out["covisibility"] = M.summarize(covis)
     out["grid_by_covisibility"] = matches_by_covisibility(covis, matches["grid"])
+    out["grid_by_benchmark"] = matches_by_benchmark(bench, matches["grid"])
     out["matcher"] = dataclasses.asdict(mcfgs["grid"])
     return out
 

@@ -104,6 +104,14 @@ def _by_covis(c: dict) -> str:
     return " / ".join(DASH if b["mean"] is None else f"{b['mean']:.1f} ({b['n']})" for b in bins)
 
 
+def _by_benchmark(c: dict) -> str:
+    per = (c.get("sift") or {}).get("grid_by_benchmark")
+    if not per:
+        return DASH
+    return " / ".join(DASH if per.get(b, {}).get("mean") is None else f"{per[b]['mean']:.1f} ({per[b]['n']})"
+                      for b in BENCHMARKS)
+
+
 def _depth_m(c: dict) -> str:
     m = (c.get("depth") or {}).get("median_m")
     if not m or m.get("median") is None:
@@ -152,6 +160,8 @@ ROWS: list[tuple[str, Callable[[dict], str]]] = [
     ("verified 2D matches / view pair, native size: mean", lambda c: _sift(c, "native", "matches")),
     ("verified 2D matches / view pair, projection grid, by the pair's co-visibility 0–30 / 30–50 / 50–100%: "
      "mean (view pairs)", _by_covis),
+    ("verified 2D matches / view pair, projection grid, of 3DMatch / 3DLoMatch pairs: mean (view pairs)",
+     _by_benchmark),
     ("view pairs (first-first, last-last of each pair run)",
      lambda c: DASH if not c.get("sift") else f"{c['sift']['view_pairs']} ({c['sift']['view_pairs_skipped']} without frames)"),
     ("depth holes: share of zero pixels, mean (p10–p90)", _holes),
