@@ -1,8 +1,10 @@
-"""Where the ``auto`` device is: one resolver for every stage (no heavy import at module level)."""
+"""Where torch runs: the ``auto`` device (one resolver for every stage) and how many CPU threads a block of
+work uses (no heavy import at module level)."""
 
 from __future__ import annotations
 
-from typing import Any
+import contextlib
+from typing import Any, Iterator
 
 
 def resolve_device(requested: Any = "auto") -> str:
@@ -18,3 +20,23 @@ def resolve_device(requested: Any = "auto") -> str:
     except ImportError:  # pragma: no cover
         return "cpu"
     return "cuda" if torch.cuda.is_available() and get_worker_info() is None else "cpu"
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None, device: Any = None) -> Iterator[None]:
+    """Run the block with ``n`` torch CPU threads, then restore the previous number (no-op for ``n`` None or
+    <= 0, or a non-CPU ``device``)."""
+    import torch
+
+    if not n or n <= 0 or (device is not None and torch.device(device).type != "cpu"):
+        yield
+        return
+    old = torch.get_num_threads()
+    if old == n:
+        yield
+        return
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)

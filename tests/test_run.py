@@ -202,6 +202,28 @@ def test_without_tracking(tmp_path, monkeypatch):
     assert (tmp_path / "out" / "pcrcg_status.json").is_file()
 
 
+def test_every_stage_runs_with_the_trainers_torch_threads(tmp_path, monkeypatch):
+    """A run whose training is skipped (a reused checkpoint, here a fake train stage that sets nothing)
+    still evaluates with ``trainer.num_threads`` (the tiny profile's 1), and the caller's number is back
+    afterwards; ``null`` leaves torch's setting alone."""
+    import torch
+
+    conf = make_conf(tmp_path / "conf")
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for k, threads in enumerate(("1", "null")):
+            args = ["--config-path", str(conf), "logger=none", "profile=tiny", *FAKES[:2],
+                    "stages.evaluate=test_run_support.threads_evaluate", f"profile.train.num_threads={threads}",
+                    f"hydra.run.dir={tmp_path}/out{k}"]
+            assert run_cli(args, tmp_path, monkeypatch) == 0
+            assert torch.get_num_threads() == 2
+        assert (tmp_path / "eval_threads.txt").read_text().split() == ["1", "2"]
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.mark.slow
 def test_parallel_joblib_sweep_writes_one_store(tmp_path, monkeypatch):
     """hydra/launcher=joblib2: two worker processes, one SQLite store created by the parent."""

@@ -64,6 +64,15 @@ def fake_train(ctx: RunContext) -> TrainOutput:
     return TrainOutput(checkpoint=ckpt, history={"train/loss": [1.0, 0.5, 0.25], "val/loss": [(0, 1.2), (2, 0.6)]})
 
 
+def threads_evaluate(ctx: RunContext) -> EvalOutput:
+    """:func:`fake_evaluate`, after writing the torch CPU threads it runs with to ``eval_threads.txt``."""
+    import torch
+
+    with open(ctx.job.base_dir / "eval_threads.txt", "a") as f:
+        f.write(f"{torch.get_num_threads()}\n")
+    return fake_evaluate(ctx)
+
+
 def expected_rr(window_size: int, seed: int, n: int, benchmark: str) -> float:
     """The recall the fake evaluation reports (%): known to the tests."""
     base = 80.0 if benchmark == "3DMatch" else 50.0

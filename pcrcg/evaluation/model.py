@@ -13,6 +13,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from tqdm import tqdm
 
+from pcrcg.device import torch_threads
 from pcrcg.evaluation.metrics import (
     FMR_THRESHOLD,
     INLIER_DISTANCE,
@@ -27,7 +28,7 @@ from pcrcg.evaluation.metrics import (
 from pcrcg.evaluation.pairs import INLIER_RATIO_FILE, write_inlier_ratios
 from pcrcg.registration.correspondences import register_correspondences
 from pcrcg.registration.feature_registration import FragmentOutput, RegistrationConfig, pair_seed, register_features
-from pcrcg.registration.ransac import ransac, torch_threads
+from pcrcg.registration.ransac import ransac
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pcrcg.device import torch_threads
 from pcrcg.registration.feature_registration import RegistrationConfig, sample_and_ransac_seeds
-from pcrcg.registration.ransac import RansacResult, ransac, ransac_open3d, torch_threads
+from pcrcg.registration.ransac import RansacResult, ransac, ransac_open3d
 
 
 @dataclass

@@ -16,9 +16,10 @@ import numpy as np
 import torch
 
 from pcrcg.config import N_POINTS
+from pcrcg.device import torch_threads
 from pcrcg.errors import ConfigError
 from pcrcg.registration.matching import match_descriptors
-from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d, torch_threads
+from pcrcg.registration.ransac import RansacConfig, RansacResult, ransac, ransac_open3d
 from pcrcg.registration.sampling import FEWER_POINTS, SAMPLING_MODES, sample_indices
 
 BACKENDS = ("torch", "open3d")

@@ -50,7 +50,7 @@ def match_descriptors(
     the point indices of a sample drawn with replacement): each distinct row is then matched once,
     with the same result (ties go to the first position, as without ids).
     """
-    from pcrcg.registration.ransac import torch_threads
+    from pcrcg.device import torch_threads
 
     if chunk is None:
         chunk = CPU_CHUNK if torch.device(device if device is not None else "cpu").type == "cpu" else 4096

@@ -53,13 +53,13 @@ selects the second. The dataclass itself defaults to the second (the library's b
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 
+from pcrcg.device import torch_threads
 from pcrcg.errors import ConfigError
 
 
@@ -155,23 +155,6 @@ class RansacResult:
     n_inliers: int
     iterations: int
     n_checked: int = 0  # hypotheses that passed both checkers and were scored
-
-
-@contextlib.contextmanager
-def torch_threads(n: int, device: str | torch.device | None = None):
-    """Run the block with ``n`` torch CPU threads (no-op for n <= 0 or a non-CPU device)."""
-    if n <= 0 or (device is not None and torch.device(device).type != "cpu"):
-        yield
-        return
-    old = torch.get_num_threads()
-    if old == n:
-        yield
-        return
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def kabsch(src: torch.Tensor, tgt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
