@@ -5,6 +5,7 @@
 #
 #   sweeps/findings.sh [profile]          # profile: cpu (default) | tiny | paper
 #   DRY_RUN=1 sweeps/findings.sh cpu      # print the commands, run nothing
+#   python -m pcrcg.report.progress       # what a relaunch would skip and run (read from the store), the time left
 #   LANES=1 sweeps/findings.sh cpu        # one lane: the jobs one after another (one core free)
 #   ONLY=^main_results sweeps/findings.sh # only the jobs that match this extended regex (finding 1 first)
 #   OUT=DIR sweeps/findings.sh            # where the report goes (default reports/findings-<profile>/)

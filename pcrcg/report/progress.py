@@ -1,0 +1,254 @@
+"""How far the findings sweep has got in a store, and what is left: ``python -m pcrcg.report.progress``.
+
+    python -m pcrcg.report.progress [--profile cpu] [--registration inlier_ranking] [--tracking-uri URI]
+        [--lanes 2] [--config conf/report.yaml]
+
+The sweep of record (``sweeps/findings.sh``) spans several sittings: it runs the findings spec's jobs
+(``python -m pcrcg.report.findings --jobs``) for every seed, seed by seed, and a relaunch skips every job whose
+config already FINISHED with this code. This command says, without running or writing anything, what such a
+relaunch would skip and what it would run. For every job and seed it composes the job's config as ``python -m
+pcrcg.run +experiment=<experiment> profile=<profile> <overrides> seed=<seed> -m`` does (the experiment's
+``hydra.sweeper.params`` that the job leaves open expand into one job per value, as Hydra's basic sweeper
+does), hashes it as a run does (:func:`pcrcg.pipeline.run_hash`) and looks the hash up in the store:
+
+* ``finished``: a FINISHED run of that hash with this checkout's code version (:func:`pcrcg.tracking.git.code_version`);
+* ``running``: a RUNNING one with this code version (a lane is on it, or it died: a relaunch closes it as KILLED);
+* ``older code``: FINISHED only with another code version (a relaunch runs it again);
+* ``to run``: none;
+* ``same as #k``: the config of an earlier run of the list in the same experiment (a seedless method, e.g. ICP
+  from the identity or FPFH: the sweep runs it once and skips it at the other seeds).
+
+The time left is the sum, over the jobs not finished, of the median wall time (``time/total_s``) of the finished
+runs of the same job at other seeds (else of the experiment's), divided by ``--lanes``; a job with neither is
+counted apart. Read-only: the store is opened, never written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import statistics
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from pcrcg.errors import ConfigError, PcrcgError
+
+STATES = ("finished", "running", "older code", "to run", "same as")
+
+
+@dataclass
+class JobState:
+    """One job of the sweep: its command's overrides, what the store holds for it and its wall time (s, a
+    finished run's own, else an estimate from others; None: no estimate)."""
+
+    experiment: str
+    overrides: tuple[str, ...]
+    seed: int
+    config_hash: str
+    state: str
+    seconds: float | None = None
+    run_id: str | None = None
+
+    @property
+    def label(self) -> str:
+        return " ".join([self.experiment, *self.overrides])
+
+
+def sweeper_expansion(overrides: Sequence[str], sweeper_params: Mapping[str, Any] | None) -> list[list[str]]:
+    """The jobs a multirun makes of ``overrides``: one per combination of the experiment's
+    ``hydra.sweeper.params`` values (comma-separated) whose keys the overrides leave open, in Hydra's basic
+    sweeper's order (the first key varies slowest). Keys set by an override (``key=...``, ``+key=...``) are
+    not expanded."""
+    fixed = {o.split("=", 1)[0].lstrip("+~") for o in overrides if "=" in o}
+    open_keys = [(k, [v.strip() for v in str(vals).split(",")]) for k, vals in (sweeper_params or {}).items()
+                 if k not in fixed]
+    if not open_keys:
+        return [list(overrides)]
+    return [list(overrides) + [f"{k}={v}" for (k, _), v in zip(open_keys, combo)]
+            for combo in itertools.product(*(vals for _, vals in open_keys))]
+
+
+def compose_job(overrides: Sequence[str], config_dir: str | Path | None = None) -> tuple[Any, dict[str, Any]]:
+    """The run config of ``python -m pcrcg.run <overrides>`` (without the ``hydra`` node) and its experiment's
+    ``hydra.sweeper.params``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf, open_dict
+
+    from pcrcg.config import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(Path(config_dir or CONF_DIR).resolve()), version_base="1.3"):
+        cfg = compose(config_name="run", overrides=list(overrides), return_hydra_config=True)
+    params = OmegaConf.to_container(cfg.hydra.sweeper.params) if cfg.hydra.sweeper.get("params") else {}
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg, dict(params or {})
+
+
+def expand_jobs(jobs: Iterable[tuple[str, str]], seeds: Sequence[int], profile: str,
+                config_dir: str | Path | None = None, extra: Sequence[str] = ()) -> list[tuple[str, list[str], int, Any]]:
+    """``(experiment, overrides, seed, config)`` of every run the sweep makes: seed by seed, each job in order
+    (as ``sweeps/findings.sh``), a job's open sweeper keys expanded (:func:`sweeper_expansion`); ``extra``:
+    overrides of every job (e.g. the sweep's stages)."""
+    out = []
+    for seed in seeds:
+        for exp, job in jobs:
+            base = [f"+experiment={exp}", f"profile={profile}", *job.split(), *extra, f"seed={seed}"]
+            cfg, params = compose_job(base, config_dir)
+            expanded = sweeper_expansion(base, params)
+            for ov in expanded:
+                out.append((exp, ov[2:], seed, cfg if ov == base else compose_job(ov, config_dir)[0]))
+    return out
+
+
+def check_store(uri: str) -> None:
+    """A SQLite store that is not there: a :class:`PcrcgError` naming the file (nothing is created)."""
+    from pcrcg.tracking.store import sqlite_path
+
+    db = sqlite_path(uri)
+    if db is not None and str(db) != ":memory:" and not db.is_file():
+        raise PcrcgError(f"{db}: no MLflow store there (--tracking-uri or MLFLOW_TRACKING_URI)")
+
+
+def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str, Any]]]:
+    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name"}`` (read-only)."""
+    from pcrcg.tracking.store import client
+    from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH
+
+    check_store(uri)
+    c = client(uri)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for name in dict.fromkeys(experiments):
+        exp = c.get_experiment_by_name(name)
+        runs = c.search_runs([exp.experiment_id], max_results=50000) if exp is not None else []
+        out[name] = [{"id": r.info.run_id, "hash": r.data.tags.get(TAG_HASH), "code": r.data.tags.get(TAG_CODE),
+                      "status": r.info.status, "seconds": r.data.metrics.get("time/total_s"),
+                      "name": r.info.run_name or ""} for r in runs]
+    return out
+
+
+def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping[str, list[dict[str, Any]]],
+               code: str, reference: Mapping[str, list[dict[str, Any]]] | None = None) -> list[JobState]:
+    """What the store (``runs``, per experiment name: :func:`_store_runs`) holds for each planned run
+    (:data:`STATES`), with the wall time of a finished one, and for the others an estimate (:func:`_estimate`, from
+    ``runs`` and the ``reference`` store's runs)."""
+    from pcrcg.pipeline import run_hash
+    from pcrcg.tracking.hashing import to_plain
+
+    states: list[JobState] = []
+    first: dict[tuple[str, str], int] = {}
+    for exp, ov, seed, cfg in planned:
+        h = run_hash(to_plain(cfg))
+        overrides = tuple(o for o in ov if not o.startswith(("profile=", "seed=")))
+        key = (str(cfg.experiment_name), h)  # a run skips only runs of its own experiment
+        if key in first:  # the same config again (a seedless method): one run for all
+            states.append(JobState(exp, overrides, seed, h, f"same as #{first[key] + 1}"))
+            continue
+        first[key] = len(states)
+        mine = [r for r in runs.get(str(cfg.experiment_name), []) if r["hash"] == h]
+        done = [r for r in mine if r["status"] == "FINISHED" and r["code"] == code]
+        if done:
+            state, r = "finished", done[0]
+        elif any(r["status"] == "RUNNING" and r["code"] == code for r in mine):
+            state, r = "running", None
+        elif any(r["status"] == "FINISHED" for r in mine):
+            state, r = "older code", None
+        else:
+            state, r = "to run", None
+        states.append(JobState(exp, overrides, seed, h, state, r["seconds"] if r else None, r["id"] if r else None))
+    merged = {k: [*runs.get(k, []), *(reference or {}).get(k, [])] for k in {*runs, *(reference or {})}}
+    _estimate(states, merged, planned)
+    return states
+
+
+def _estimate(states: list[JobState], runs: Mapping[str, list[dict[str, Any]]],
+              planned: Sequence[tuple[str, list[str], int, Any]]) -> None:
+    """Fills ``seconds`` of the jobs not finished: the median wall time of the same job's finished runs (other
+    seeds of this sweep), else of the store's finished runs of the same name but for the seed (any code), else of
+    every finished run of the experiment."""
+    import re
+
+    by_job: dict[tuple[str, tuple[str, ...]], list[float]] = {}
+    for s in states:
+        if s.state == "finished" and s.seconds is not None:
+            by_job.setdefault((s.experiment, s.overrides), []).append(s.seconds)
+    names = {id(s): str(cfg.experiment_name) for s, (_, _, _, cfg) in zip(states, planned)}
+    for s in states:
+        if s.state == "finished" or s.state.startswith("same as"):
+            continue
+        done = [r for r in runs.get(names[id(s)], []) if r["status"] == "FINISHED" and r["seconds"]]
+        named = [r["seconds"] for r in done
+                 if re.sub(r"(^| )seed=\d+", "", r["name"]).strip() == " ".join(s.overrides)]
+        same = by_job.get((s.experiment, s.overrides)) or named or [r["seconds"] for r in done]
+        s.seconds = statistics.median(same) if same else None
+
+
+def _hms(seconds: float | None) -> str:
+    if seconds is None:
+        return "?"
+    m = int(round(seconds / 60))
+    return f"{m // 60} h {m % 60:02d} min" if m >= 60 else f"{m} min"
+
+
+def render(states: Sequence[JobState], lanes: int, code: str, uri: str) -> str:
+    """The progress table (one line per run, in the sweep's order) and the totals."""
+    lines = [f"Store {uri}, code version {code}: the findings sweep, {len(states)} runs", "",
+             "| # | seed | job | state | wall time |", "|---:|---:|---|---|---:|"]
+    for k, s in enumerate(states, 1):
+        t = (_hms(s.seconds) if s.state == "finished" else "–" if s.state.startswith("same as")
+             else f"~{_hms(s.seconds)}" if s.seconds else "?")
+        lines.append(f"| {k} | {s.seed} | {s.label} | {s.state} | {t} |")
+    counts = {st: sum(s.state.startswith(st) for s in states) for st in STATES}
+    left = [s for s in states if s.state not in ("finished",) and not s.state.startswith("same as")]
+    known = [s.seconds for s in left if s.seconds is not None]
+    done_s = sum(s.seconds or 0.0 for s in states if s.state == "finished")
+    lines += ["", ", ".join(f"{n} {st}" for st, n in counts.items()) + ".",
+              f"Finished runs' wall time: {_hms(done_s)} in all.",
+              f"Left: {len(left)} runs, ~{_hms(sum(known))} of run time ({len(left) - len(known)} without an "
+              f"estimate), ~{_hms(sum(known) / max(lanes, 1))} of wall time on {lanes} lane(s)."]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m pcrcg.report.progress",
+                                description="How far the findings sweep has got in a store, and what is left "
+                                            "(read-only).")
+    p.add_argument("--profile", default="cpu")
+    p.add_argument("--registration", default=None,
+                   help="the sweep's registration group (sweeps/findings.sh's REGISTRATION), e.g. inlier_ranking")
+    p.add_argument("--tracking-uri", default=None, help="the store (default: MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+    p.add_argument("--lanes", type=int, default=2, help="lanes for the wall-time estimate (default 2)")
+    p.add_argument("--estimates-from", default=None, metavar="URI",
+                   help="another store whose finished runs also serve the time estimates (e.g. an earlier sweep's)")
+    p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
+    args = p.parse_args(argv)
+    from pcrcg.report.findings import load_findings, registration_where
+    from pcrcg.tracking.git import code_version
+    from pcrcg.tracking.store import resolve_tracking_uri
+
+    try:
+        where = registration_where(args.registration) if args.registration else {}
+        spec = load_findings(args.config, where)
+        if spec is None:
+            raise ConfigError("findings", None, "claims in conf/report.yaml (findings.claims)")
+        uri = resolve_tracking_uri(args.tracking_uri)
+        check_store(uri)
+        if args.estimates_from:
+            check_store(resolve_tracking_uri(args.estimates_from))
+        planned = expand_jobs(spec.jobs(), spec.seeds, args.profile)
+        names = {str(cfg.experiment_name) for *_, cfg in planned}
+        runs = _store_runs(uri, names)
+        ref = _store_runs(resolve_tracking_uri(args.estimates_from), names) if args.estimates_from else {}
+        code = code_version()
+        print(render(job_states(planned, runs, code, ref), args.lanes, code, uri))
+    except PcrcgError as e:
+        print(f"python -m pcrcg.report.progress: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,54 @@
+"""python -m pcrcg.report.progress: what a relaunch of the findings sweep would skip and run, read from a store."""
+
+from __future__ import annotations
+
+import pytest
+
+from test_run_support import FAKES, make_conf, run_cli
+
+from pcrcg.report.progress import expand_jobs, job_states, render, sweeper_expansion, _store_runs
+
+
+def test_open_sweeper_keys_expand_as_hydras_basic_sweeper_and_fixed_ones_do_not():
+    params = {"method": "icp,color_icp", "icp_init": "identity, learned"}
+    assert sweeper_expansion(["method=icp", "icp_init=learned"], params) == [["method=icp", "icp_init=learned"]]
+    assert sweeper_expansion(["+method=icp"], params) == [["+method=icp", "icp_init=identity"],
+                                                         ["+method=icp", "icp_init=learned"]]
+    assert sweeper_expansion(["seed=0"], params) == [
+        ["seed=0", "method=icp", "icp_init=identity"], ["seed=0", "method=icp", "icp_init=learned"],
+        ["seed=0", "method=color_icp", "icp_init=identity"], ["seed=0", "method=color_icp", "icp_init=learned"]]
+    assert sweeper_expansion(["seed=0"], None) == [["seed=0"]]
+
+
+def test_a_finished_run_is_found_by_its_config_and_code_and_the_rest_is_estimated(tmp_path, monkeypatch):
+    """One job of a sweep run at seed 0 (fake stages, a classical method: no training) is ``finished`` at this
+    code, ``older code`` at another; seed 1 is ``to run`` with seed 0's wall time as its estimate; the seedless
+    ICP from the identity is one run for every seed; a job never run has no estimate."""
+    conf = make_conf(tmp_path / "conf")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    args = ["--config-path", str(conf), "+experiment=sift_dlt", "method=fpfh", "profile=tiny", *FAKES, "seed=0",
+            f"hydra.sweep.dir={tmp_path}/multirun", "-m"]
+    assert run_cli(args, tmp_path, monkeypatch) == 0
+    jobs = [("sift_dlt", "method=fpfh"), ("icp_init", "method=icp icp_init=identity")]
+    planned = expand_jobs(jobs, [0, 1], "tiny", config_dir=conf, extra=FAKES)
+    assert [(e, s) for e, _, s, _ in planned] == [("sift_dlt", 0), ("icp_init", 0), ("sift_dlt", 1), ("icp_init", 1)]
+    runs = _store_runs(uri, {"sift_dlt", "icp_init"})
+    (run,) = runs["sift_dlt"]
+    states = job_states(planned, runs, run["code"])
+    assert [s.state for s in states] == ["finished", "to run", "to run", "same as #2"]
+    assert states[0].run_id == run["id"] and states[0].seconds == pytest.approx(run["seconds"])
+    assert states[2].seconds == pytest.approx(run["seconds"]) and states[1].seconds is None
+    assert states[0].config_hash != states[2].config_hash  # the seed is part of FPFH's config
+    assert [s.state for s in job_states(planned, runs, "another version")][0] == "older code"
+    text = render(states, 2, run["code"], uri)
+    assert "1 finished, 0 running, 0 older code, 2 to run, 1 same as" in text
+    assert "Left: 2 runs" in text and "(1 without an estimate)" in text
+
+
+def test_a_missing_store_is_one_line(tmp_path, capsys):
+    from pcrcg.report.progress import main
+
+    assert main(["--tracking-uri", f"sqlite:///{tmp_path}/none.db", "--profile", "tiny"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("python -m pcrcg.report.progress: ") and "none.db" in err and "\n" not in err
