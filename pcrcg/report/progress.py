@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import re
 import statistics
 import sys
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ class JobState:
     state: str
     seconds: float | None = None
     run_id: str | None = None
+    store_experiment: str = ""  # the MLflow experiment its runs go to (the config's experiment_name)
 
     @property
     def label(self) -> str:
@@ -143,12 +145,13 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
     for exp, ov, seed, cfg in planned:
         h = run_hash(to_plain(cfg))
         overrides = tuple(o for o in ov if not o.startswith(("profile=", "seed=")))
-        key = (str(cfg.experiment_name), h)  # a run skips only runs of its own experiment
+        name = str(cfg.experiment_name)
+        key = (name, h)  # a run skips only runs of its own experiment
         if key in first:  # the same config again (a seedless method): one run for all
-            states.append(JobState(exp, overrides, seed, h, f"same as #{first[key] + 1}"))
+            states.append(JobState(exp, overrides, seed, h, f"same as #{first[key] + 1}", store_experiment=name))
             continue
         first[key] = len(states)
-        mine = [r for r in runs.get(str(cfg.experiment_name), []) if r["hash"] == h]
+        mine = [r for r in runs.get(name, []) if r["hash"] == h]
         done = [r for r in mine if r["status"] == "FINISHED" and r["code"] == code]
         if done:
             state, r = "finished", done[0]
@@ -158,28 +161,25 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
             state, r = "older code", None
         else:
             state, r = "to run", None
-        states.append(JobState(exp, overrides, seed, h, state, r["seconds"] if r else None, r["id"] if r else None))
+        states.append(JobState(exp, overrides, seed, h, state, r["seconds"] if r else None, r["id"] if r else None,
+                               store_experiment=name))
     merged = {k: [*runs.get(k, []), *(reference or {}).get(k, [])] for k in {*runs, *(reference or {})}}
-    _estimate(states, merged, planned)
+    _estimate(states, merged)
     return states
 
 
-def _estimate(states: list[JobState], runs: Mapping[str, list[dict[str, Any]]],
-              planned: Sequence[tuple[str, list[str], int, Any]]) -> None:
+def _estimate(states: list[JobState], runs: Mapping[str, list[dict[str, Any]]]) -> None:
     """Fills ``seconds`` of the jobs not finished: the median wall time of the same job's finished runs (other
     seeds of this sweep), else of the store's finished runs of the same name but for the seed (any code), else of
     every finished run of the experiment."""
-    import re
-
     by_job: dict[tuple[str, tuple[str, ...]], list[float]] = {}
     for s in states:
         if s.state == "finished" and s.seconds is not None:
             by_job.setdefault((s.experiment, s.overrides), []).append(s.seconds)
-    names = {id(s): str(cfg.experiment_name) for s, (_, _, _, cfg) in zip(states, planned)}
     for s in states:
         if s.state == "finished" or s.state.startswith("same as"):
             continue
-        done = [r for r in runs.get(names[id(s)], []) if r["status"] == "FINISHED" and r["seconds"]]
+        done = [r for r in runs.get(s.store_experiment, []) if r["status"] == "FINISHED" and r["seconds"]]
         named = [r["seconds"] for r in done
                  if re.sub(r"(^| )seed=\d+", "", r["name"]).strip() == " ".join(s.overrides)]
         same = by_job.get((s.experiment, s.overrides)) or named or [r["seconds"] for r in done]
