@@ -11,7 +11,8 @@ pcrcg.run +experiment=<experiment> profile=<profile> <overrides> seed=<seed> -m`
 ``hydra.sweeper.params`` that the job leaves open expand into one job per value, as Hydra's basic sweeper
 does), hashes it as a run does (:func:`pcrcg.pipeline.run_hash`) and looks the hash up in the store:
 
-* ``finished``: a FINISHED run of that hash with this checkout's code version (:func:`pcrcg.tracking.git.code_version`);
+* ``finished``: a FINISHED run of that hash with this checkout's code version (:func:`pcrcg.tracking.git.code_version`;
+  ``--code-version V``: the sweep's, when it runs from another checkout whose result code differs);
 * ``running``: a RUNNING one with this code version (a lane is on it, or it died: a relaunch closes it as KILLED);
 * ``older code``: FINISHED only with another code version (a relaunch runs it again);
 * ``to run``: none;
@@ -223,6 +224,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--lanes", type=int, default=2, help="lanes for the wall-time estimate (default 2)")
     p.add_argument("--estimates-from", default=None, metavar="URI",
                    help="another store whose finished runs also serve the time estimates (e.g. an earlier sweep's)")
+    p.add_argument("--code-version", default=None,
+                   help="the code version the sweep runs (default: this checkout's; a sweep run from another checkout "
+                        "whose result code differs is told by its runs' code_version tag)")
     p.add_argument("--config", default=None, help="a report config (default: conf/report.yaml)")
     args = p.parse_args(argv)
     from pcrcg.report.findings import load_findings, registration_where
@@ -242,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         names = {str(cfg.experiment_name) for *_, cfg in planned}
         runs = _store_runs(uri, names)
         ref = _store_runs(resolve_tracking_uri(args.estimates_from), names) if args.estimates_from else {}
-        code = code_version()
+        code = args.code_version or code_version()
         print(render(job_states(planned, runs, code, ref), args.lanes, code, uri))
     except PcrcgError as e:
         print(f"python -m pcrcg.report.progress: {e}", file=sys.stderr)
