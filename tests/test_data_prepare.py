@@ -117,6 +117,45 @@ def test_interrupted_generation_keeps_the_old_data_set(tmp_path, monkeypatch):
     assert not list(tmp_path.glob("d.tmp-*"))  # nothing half-written left behind
 
 
+def test_a_root_this_build_did_not_write_is_never_replaced(tmp_path, monkeypatch):
+    """A user's folder (files, no manifest), a file, and a data set of another source are refused
+    before any work, and left as they were; an empty folder and the same source's data set are built."""
+    calls = []
+
+    def job(tmp, data_cfg, seed, log):
+        calls.append(seed)
+        return {}
+
+    monkeypatch.setattr(materialise, "_prepare_synthmatch", job)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("years of work")
+    with pytest.raises(ConfigError, match=r"data.root=.*mine.*no manifest.json.*nothing was changed"):
+        prepare_dataset(tiny_data_cfg(mine), seed=1, log=lambda m: None)
+    assert (mine / "thesis.tex").read_text() == "years of work" and calls == []
+
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    with pytest.raises(ConfigError, match=r"data.root=.*notes.txt.*a folder"):
+        prepare_dataset(tiny_data_cfg(a_file), seed=1, log=lambda m: None)
+    assert a_file.read_text() == "x"
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "manifest.json").write_text(json.dumps({"params_hash": "0", "params": {"name": "threedmatch"}}))
+    (real / "fragments").mkdir()
+    with pytest.raises(ConfigError, match=r"data.root=.*real.*holds a threedmatch data set.*data=threedmatch"):
+        prepare_dataset(tiny_data_cfg(real), seed=1, log=lambda m: None)
+    assert (real / "fragments").is_dir() and read_manifest(real)["params"]["name"] == "threedmatch"
+    assert calls == []
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    prepare_dataset(tiny_data_cfg(empty), seed=1, log=lambda m: None)
+    prepare_dataset(tiny_data_cfg(empty), seed=2, log=lambda m: None)  # same source, new params: rebuilt
+    assert calls == [1, 2] and read_manifest(empty)["params"]["seed"] == 2
+
+
 def test_same_seed_same_bytes(tmp_path):
     cfg = SynthConfig(n_scenes=1, n_val=0, n_test=0, width=64, height=48, fragments_per_scene=2,
                       frames_per_fragment=2)

@@ -3,8 +3,10 @@ the real 3DMatch release (threedmatch).
 
 Writes happen in ``<root>.tmp-<pid>`` which is renamed into place only when complete, with a
 ``manifest.json`` holding the parameters' hash and the statistics; an interrupted run never leaves
-a data set that looks finished. A finished data set with the same parameters is reused; one with
-different parameters is replaced (only after the new one is complete).
+a data set that looks finished. A finished data set with the same parameters is reused; one of the
+same source with different parameters is replaced (only after the new one is complete). Nothing else
+is ever replaced: a ``data.root`` that holds files and no manifest (a user's folder), or a data set of
+another source (the real 3DMatch scene under a generated config), is refused before any work starts.
 """
 
 from __future__ import annotations
@@ -112,6 +114,7 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
     if man is not None and man.get("params_hash") == h and not force:
         log(f"[prepare] {root} is up to date (params {h}); reusing it")
         return root
+    _check_replaceable(root, name, man)
     if name == "synthmatch":
         job = lambda tmp: _prepare_synthmatch(tmp, data_cfg, seed, log)  # noqa: E731
     elif name == "redkitchen":
@@ -124,6 +127,28 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
         job = lambda tmp: prepare_release(tmp, data_cfg, log)  # noqa: E731
     _atomic_build(root, h, params, job, log)
     return root
+
+
+def _check_replaceable(root: Path, name: str, manifest: dict | None) -> None:
+    """Refuse (one line naming ``data.root``) to build into a ``root`` whose contents this build would
+    replace without having written them: a file, a non-empty folder with no ``manifest.json``, or a data
+    set of another source than ``name`` (its manifest's ``params.name``)."""
+    if not (root.exists() or root.is_symlink()):
+        return
+    if not root.is_dir():
+        raise ConfigError("data.root", str(root), "a folder (this path is a file; nothing was changed)")
+    if manifest is None:
+        if any(root.iterdir()):
+            raise ConfigError("data.root", str(root),
+                              "a new or empty folder, or a data set this project wrote (this folder holds files "
+                              "and no manifest.json, so it is not replaced; nothing was changed)")
+        return
+    held = (manifest.get("params") or {}).get("name")
+    if held != name:
+        raise ConfigError("data.root", str(root),
+                          f"a folder for a {name} data set: it holds a {held} data set (its manifest.json), which "
+                          f"a {name} config does not replace; choose another data.root, or data={held} to use it "
+                          "(nothing was changed)")
 
 
 def _remove_stale_temps(root: Path, log) -> None:
