@@ -42,8 +42,32 @@ def test_a_finished_run_is_found_by_its_config_and_code_and_the_rest_is_estimate
     assert states[0].config_hash != states[2].config_hash  # the seed is part of FPFH's config
     assert [s.state for s in job_states(planned, runs, "another version")][0] == "older code"
     text = render(states, 2, run["code"], uri)
-    assert "1 finished, 0 running, 0 older code, 2 to run, 1 same as" in text
+    assert "1 finished, 0 running, 0 stale, 0 older code, 2 to run, 1 same as" in text
     assert "Left: 2 runs" in text and "(1 without an estimate)" in text
+
+
+def test_a_running_run_whose_process_is_gone_is_stale():
+    """RUNNING runs at this code: ``running`` while the owner lives, ``stale`` once it is gone (a relaunch runs
+    the job again); a stale run beside a live one is ``running``; a finished one wins over both."""
+    from omegaconf import OmegaConf
+
+    from pcrcg.pipeline import run_hash
+    from pcrcg.tracking.hashing import to_plain
+
+    cfg = OmegaConf.create({"experiment_name": "e", "seed": 0, "x": 1})
+    h = run_hash(to_plain(cfg))
+    planned = [("e", ["x=1"], 0, cfg)]
+
+    def state(*runs):
+        store = {"e": [{"id": str(k), "hash": h, "code": "c", "seconds": 5.0, "name": "x=1", **r}
+                       for k, r in enumerate(runs)]}
+        return job_states(planned, store, "c")[0].state
+
+    live = {"status": "RUNNING", "stale": False}
+    dead = {"status": "RUNNING", "stale": True}
+    assert state(live) == "running" and state(dead) == "stale" and state(dead, live) == "running"
+    assert state(dead, {"status": "FINISHED", "stale": False}) == "finished"
+    assert state({**dead, "code": "older"}) == "to run"
 
 
 def test_a_missing_store_is_one_line(tmp_path, capsys):

@@ -13,7 +13,9 @@ does), hashes it as a run does (:func:`pcrcg.pipeline.run_hash`) and looks the h
 
 * ``finished``: a FINISHED run of that hash with this checkout's code version (:func:`pcrcg.tracking.git.code_version`;
   ``--code-version V``: the sweep's, when it runs from another checkout whose result code differs);
-* ``running``: a RUNNING one with this code version (a lane is on it, or it died: a relaunch closes it as KILLED);
+* ``running``: a RUNNING one with this code version whose process is alive (or runs on another host);
+* ``stale``: RUNNING with this code version, but its process on this host is gone (a lane killed, a session
+  ended; :func:`pcrcg.tracking.tracker.is_stale`): a relaunch closes it as KILLED and runs the job again;
 * ``older code``: FINISHED only with another code version (a relaunch runs it again);
 * ``to run``: none;
 * ``same as #k``: the config of an earlier run of the list in the same experiment (a seedless method, e.g. ICP
@@ -37,7 +39,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from pcrcg.errors import ConfigError, PcrcgError
 
-STATES = ("finished", "running", "older code", "to run", "same as")
+STATES = ("finished", "running", "stale", "older code", "to run", "same as")
 
 
 @dataclass
@@ -117,9 +119,10 @@ def check_store(uri: str) -> None:
 
 
 def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str, Any]]]:
-    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name"}`` (read-only)."""
+    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name", "stale"}``
+    (read-only; ``stale``: RUNNING, and its process on this host is gone)."""
     from pcrcg.tracking.store import client
-    from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH
+    from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH, is_stale
 
     check_store(uri)
     c = client(uri)
@@ -129,7 +132,8 @@ def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str
         runs = c.search_runs([exp.experiment_id], max_results=50000) if exp is not None else []
         out[name] = [{"id": r.info.run_id, "hash": r.data.tags.get(TAG_HASH), "code": r.data.tags.get(TAG_CODE),
                       "status": r.info.status, "seconds": r.data.metrics.get("time/total_s"),
-                      "name": r.info.run_name or ""} for r in runs]
+                      "name": r.info.run_name or "", "stale": is_stale(r.info.status, r.data.tags)}
+                     for r in runs]
     return out
 
 
@@ -156,8 +160,10 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
         done = [r for r in mine if r["status"] == "FINISHED" and r["code"] == code]
         if done:
             state, r = "finished", done[0]
-        elif any(r["status"] == "RUNNING" and r["code"] == code for r in mine):
+        elif any(r["status"] == "RUNNING" and r["code"] == code and not r.get("stale") for r in mine):
             state, r = "running", None
+        elif any(r["status"] == "RUNNING" and r["code"] == code for r in mine):
+            state, r = "stale", None
         elif any(r["status"] == "FINISHED" for r in mine):
             state, r = "older code", None
         else:
