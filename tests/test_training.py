@@ -198,6 +198,16 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
     assert res["points"] == [len(o.src.points), len(o.tgt.points)] and res["correspondences"] > 0
 
 
+def test_training_on_a_data_set_without_training_pairs_is_one_line(tmp_path):
+    """A test-only data set (the real 3DMatch scene's layout: an empty pairs/train.txt) is a DataError naming that
+    file when training is set up, not a sampler's ValueError from inside Lightning."""
+    (tmp_path / "pairs").mkdir()
+    write_pairs(tmp_path / "pairs" / "train.txt", [])
+    dm = PairDataModule(tmp_path, voxel_size=VOXEL, num_layers=3)
+    with pytest.raises(DataError, match=r"pairs/train.txt: no training pairs"):
+        dm.setup("fit")
+
+
 def test_datamodule_calibrates_and_restores_limits(toy_root):
     dm = PairDataModule(toy_root, voxel_size=VOXEL, num_layers=3)
     dm.setup("fit")

@@ -29,7 +29,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from pcrcg.data.dataset import PairDataset, PairSample, View
-from pcrcg.errors import ConfigError
+from pcrcg.errors import ConfigError, DataError
 from pcrcg.geometry import invert, make_transform, random_rotation, transform_points
 from pcrcg.fields import NodeSettings
 from pcrcg.models.kpconv.ops import radius_pairs
@@ -253,6 +253,13 @@ class PairDataModule(L.LightningDataModule):
         return self.limits
 
     def setup(self, stage: str | None = None) -> None:
+        if stage == "fit" and self.train_split not in self._given:
+            ds = self.dataset(self.train_split)
+            if len(ds) == 0:
+                where = ds.layout.pairs_file(self.train_split) if isinstance(ds, PairDataset) else self.root
+                raise DataError(where, "no training pairs: a test-only data set (data=threedmatch's real scene) trains "
+                                "nothing; train on generated data and evaluate the checkpoint here (python -m "
+                                "pcrcg.evaluate mode=benchmark method=learned checkpoint=FILE data.root=...)")
         if self.limits is None:
             self.calibrate()
 
