@@ -630,6 +630,7 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                               f"a local file with the {enc_name} weights of the 2D encoder "
                               f"(set encoder2d.{key}=/path/to/file; nothing is downloaded)")
     _check_learned_2d(data, needs_2d)
+    _check_training_scenes(data)
     # files of groups the run never reads are not its business: a geometry-only row of a table whose color rows
     # use Pri3D weights runs before (or without) them
     unused = set() if uses_encoder else {"encoder2d"}
@@ -645,6 +646,20 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                 hint = (f" (the project's 2D pretraining writes it: python -m pcrcg.pretrain2d"
                         f"{' profile=' + prof if prof else ''}; or set encoder2d.weights=PATH)")
             raise ConfigError(path, value, "an existing local file" + hint)
+
+
+def _check_training_scenes(data: Mapping[str, Any]) -> None:
+    """A run that trains on generated data whose sizes leave no training scene (``n_val + n_test = n_scenes``: a
+    test-only sample, which ``pcrcg.prepare`` makes) is refused before the data are generated."""
+    d = data.get("data") if isinstance(data.get("data"), Mapping) else {}
+    synth = d.get("synth") if isinstance(d.get("synth"), Mapping) else None
+    if d.get("name") != "synthmatch" or synth is None or not needs_training(data):
+        return
+    sizes = [synth.get(k) for k in ("n_scenes", "n_val", "n_test")]
+    if all(isinstance(v, int) and not isinstance(v, bool) for v in sizes) and sizes[0] - sizes[1] - sizes[2] < 1:
+        raise ConfigError("data.synth.n_scenes", sizes[0],
+                          f"more than n_val + n_test = {sizes[1] + sizes[2]} for a run that trains (these sizes "
+                          "make a test-only data set, for pcrcg.prepare and pcrcg.data.stats)")
 
 
 def _check_learned_2d(data: Mapping[str, Any], needs_2d: bool) -> None:

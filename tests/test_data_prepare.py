@@ -156,6 +156,24 @@ def test_a_root_this_build_did_not_write_is_never_replaced(tmp_path, monkeypatch
     assert calls == [1, 2] and read_manifest(empty)["params"]["seed"] == 2
 
 
+def test_a_test_only_sample_is_prepared_and_a_run_that_would_train_on_it_is_refused_first(tmp_path):
+    """Sizes that leave no training scene (n_val + n_test = n_scenes) make a test-only data set, as the real
+    scene's (for statistics of a profile's data without its training rooms); a training run with such sizes is
+    refused by the preflight, before any generation."""
+    from pcrcg.config import preflight
+
+    sizes = ("profile.synth.n_scenes=1", "profile.synth.n_val=0", "profile.synth.n_test=1")
+    root = prepare_dataset(tiny_data_cfg(tmp_path / "sample", *sizes), seed=0, log=lambda m: None)
+    stats = read_manifest(root)["stats"]
+    assert stats["scenes"] == {"train": 0, "val": 0, "test": 1} and stats["pairs"]["train"] == 0
+    assert stats["pairs"]["3DMatch"] > 0 and read_pairs(Layout(root).pairs_file("train")) == []
+    run = compose("run", ["profile=tiny", f"data.root={tmp_path / 'other'}", *sizes])
+    with pytest.raises(ConfigError, match=r"data.synth.n_scenes=1.*more than n_val \+ n_test = 1"):
+        preflight(run)
+    preflight(compose("run", ["profile=tiny", "method=fpfh", *sizes]))  # a classical method trains nothing
+    assert not (tmp_path / "other").exists()
+
+
 def test_same_seed_same_bytes(tmp_path):
     cfg = SynthConfig(n_scenes=1, n_val=0, n_test=0, width=64, height=48, fragments_per_scene=2,
                       frames_per_fragment=2)
@@ -177,7 +195,7 @@ def test_invalid_profile_values_name_the_setting(tmp_path):
     with pytest.raises(ConfigError, match="data.synth.width"):
         prepare_dataset(tiny_data_cfg(tmp_path / "x", "profile.synth.width=0"), log=lambda m: None)
     with pytest.raises(ConfigError, match="data.synth.n_scenes"):
-        prepare_dataset(tiny_data_cfg(tmp_path / "x", "profile.synth.n_test=3"), log=lambda m: None)
+        prepare_dataset(tiny_data_cfg(tmp_path / "x", "profile.synth.n_test=4"), log=lambda m: None)
     with pytest.raises(ConfigError, match="data.fusion.bogus"):
         prepare_dataset(tiny_data_cfg(tmp_path / "x", "+data.fusion.bogus=1"), log=lambda m: None)
     for bad in ("[0.6,0.3]", "[0.2]", "[0.2,1.5]", "abc"):

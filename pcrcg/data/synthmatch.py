@@ -69,9 +69,10 @@ def scene_name(index: int) -> str:
 
 
 def assign_splits(n_scenes: int, n_val: int, n_test: int, seed: int) -> dict[str, list[str]]:
-    """Scenes split by a seeded shuffle: test first, then val, the rest train."""
-    if n_val + n_test >= n_scenes:
-        raise ValueError(f"n_scenes={n_scenes} leaves no training scene after n_val={n_val}, n_test={n_test}")
+    """Scenes split by a seeded shuffle: test first, then val, the rest train (none: a test-only data set, as the
+    real 3DMatch scene; a run that trains on it is refused by :func:`pcrcg.config.preflight`)."""
+    if n_val + n_test > n_scenes:
+        raise ValueError(f"n_scenes={n_scenes} is fewer than n_val={n_val} + n_test={n_test}")
     order = np.random.default_rng([seed, 7919]).permutation(n_scenes)
     names = [scene_name(int(k)) for k in order]
     return {
