@@ -46,6 +46,7 @@ if [ "${#JOBS[@]}" -eq 0 ]; then
   exit 2
 fi
 filter_jobs || exit 2
+check_lanes || exit 2   # before the real scene is built
 # the experiments of the jobs this sweep runs (all of the findings', or those ONLY keeps), in the spec's order
 EXPERIMENTS=$(for j in "${JOBS[@]}"; do echo "${j%% *}"; done | awk '!seen[$0]++' | paste -sd, -)
 # seed by seed: every job of seed 0, then of seed 1, ...: a sweep stopped half way has whole seeds of
@@ -59,27 +60,40 @@ if [ -n "$SEEDS" ]; then
 fi
 COMMON="profile=$PROFILE runtime.report_on_end=false"
 
-two_lanes || exit $?
-
-# the real scene: built once from ../shared/data (when it is here), then every run of the findings' experiments on it
+# the real scene: built once from ../shared/data (when it is here) before the lanes; each lane evaluates every
+# model of an experiment the findings read on it right after a job of that experiment (`after_job`), while its
+# checkpoint is still on this machine (a machine that is shut down keeps the store, not checkpoints/), and
+# every run of them once more after the lanes (what a crash left out)
 L=$LOGS/real.log
+REAL_EXPERIMENTS=""
 if [ -d "$SHARED" ]; then
+  [ "$DRY_RUN" = 1 ] || mkdir -p "$LOGS"
   if [ ! -f "$REAL_ROOT/manifest.json" ]; then
     step "$L" "$PYTHON" -m pcrcg.prepare data=threedmatch data.source.fragments_dir="$SHARED/real-3dmatch-fragments" \
       data.source.rgbd_dir="$SHARED/real-rgbd" data.root="$REAL_ROOT"
   fi
-  # one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others;
   # those the findings read on the real scene (`--real-experiments`: the claims', and a target's whose
   # benchmark is the real scene's; FPFH + RANSAC for the generated-3DMatch target is not among them)
   REAL_EXPERIMENTS=",$("$PYTHON" -m pcrcg.report.findings --real-experiments),"
-  for e in ${EXPERIMENTS//,/ }; do
-    [[ $REAL_EXPERIMENTS == *",$e,"* ]] || continue
-    step "$L" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$e]" data.root="$REAL_ROOT" \
-      name=real-redkitchen profile="$PROFILE"
-  done
 else
   echo "findings.sh: $SHARED is not here: no real-scene evaluation (the findings show — in its columns)" >&2
 fi
+
+real_eval() {  # real_eval <log> <experiment>: the experiment's finished runs not yet on the real scene, evaluated
+  [[ $REAL_EXPERIMENTS == *",$2,"* ]] || return 0   # on it (one lane at a time: the other then skips them)
+  [ "$DRY_RUN" = 1 ] || [ -f "$REAL_ROOT/manifest.json" ] || return 0
+  step "$1" flock "$LOGS/real.lock" "$PYTHON" -m pcrcg.evaluate mode=tracked "experiments=[$2]" \
+    data.root="$REAL_ROOT" name=real-redkitchen profile="$PROFILE"
+}
+after_job() { real_eval "$1" "$2"; }
+
+two_lanes || exit $?
+unset -f after_job
+
+# one experiment at a time: one whose runs all failed (or are not in the store) does not stop the others
+for e in ${EXPERIMENTS//,/ }; do
+  real_eval "$L" "$e"
+done
 # the report of this sweep alone: the findings and the tables of its experiments, in their own folder (the
 # tables of reports/ may come from other sweeps and stores)
 run "$PYTHON" -m pcrcg.report profile="$PROFILE" "tables=[$EXPERIMENTS]" out_dir="$OUT" "${REPORT_ARGS[@]}"

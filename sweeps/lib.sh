@@ -61,10 +61,14 @@ next_job() {  # next_job: the index of the next job of JOBS that no lane has tak
 }
 
 lane() {  # lane <n>: takes the next job of the array JOBS ("<experiment> [overrides...]" each) from the shared
-  local k L=$LOGS/lane$1.log   # queue as long as one is left, logged to $LOGS/lane<n>.log
-  while k=$(next_job); do
+  local k L=$LOGS/lane$1.log   # queue as long as one is left, logged to $LOGS/lane<n>.log; after each job, the
+  while k=$(next_job); do      # script's own `after_job <lane log> <experiment> [overrides...]` if it has one
     # shellcheck disable=SC2086  # "<experiment> [overrides...]"
     job "$L" ${JOBS[$k]}
+    if [ "$DRY_RUN" != 1 ] && declare -F after_job >/dev/null; then
+      # shellcheck disable=SC2086
+      after_job "$L" ${JOBS[$k]}
+    fi
   done
 }
 
@@ -79,9 +83,13 @@ filter_jobs() {  # filter_jobs: keeps the jobs of JOBS that match the extended r
   JOBS=("${kept[@]}")
 }
 
+check_lanes() {  # check_lanes: fails (one line to stderr) unless LANES is 1 or 2 (default 2)
+  case ${LANES:-2} in 1|2) ;; *) echo "LANES=$LANES: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
+}
+
 two_lanes() {  # the jobs of JOBS on LANES (default 2) single-core lanes at once: each lane takes the next job in
   local n lanes=${LANES:-2}   # order as soon as it is free (jobs differ a lot in length); LANES=1: one after another
-  case $lanes in 1|2) ;; *) echo "LANES=$lanes: 1 or 2 (single-core lanes at once)" >&2; return 2 ;; esac
+  check_lanes || return 2
   if [ "$DRY_RUN" = 1 ]; then
     echo "# queue: $lanes lane(s), each takes the next job when it is free"
     local j

@@ -112,6 +112,38 @@ two_lanes
     assert not list(tmp_path.glob("queue.*"))
 
 
+def test_a_lane_calls_the_scripts_after_job_hook_after_each_of_its_jobs(tmp_path):
+    """sweeps/lib.sh lane: after each job, the script's `after_job <log> <job words...>` (findings.sh evaluates
+    the job's experiment on the real scene while the checkpoint is still on the machine), right after that job
+    and in the lane that ran it; none in a dry run."""
+    script = f"""
+set -u
+. sweeps/lib.sh
+LOGS={tmp_path}
+MLFLOW_TRACKING_URI=sqlite:///{tmp_path}/m.db
+PYTHON=true
+JOBS=("a x=1" "b x=2" "c x=3" "d x=4" "e x=5")
+job() {{ echo "job $1 $2 $3" >>{tmp_path}/events; }}
+after_job() {{ echo "after $1 $2 $3" >>{tmp_path}/events; }}
+two_lanes
+"""
+    out = subprocess.run(["bash", "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    events = (tmp_path / "events").read_text().splitlines()
+    assert len(events) == 10
+    for lane in (f"{tmp_path}/lane1.log", f"{tmp_path}/lane2.log"):
+        mine = [e.split(" ", 2)[::2] for e in events if e.split()[1] == lane]
+        # each of the lane's jobs is followed by its hook, with the same log and words
+        assert [w for w, _ in mine] == ["job", "after"] * (len(mine) // 2)
+        assert [j for _, j in mine[0::2]] == [j for _, j in mine[1::2]]
+    assert sorted(e.split(" ", 2)[2] for e in events if e.startswith("after")) == [
+        "a x=1", "b x=2", "c x=3", "d x=4", "e x=5"]
+    dry = subprocess.run(["bash", "-c", script.replace("set -u", "set -u\nDRY_RUN=1")], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert dry.returncode == 0, dry.stderr
+    assert "after" not in dry.stdout
+
+
 @pytest.mark.parametrize("job", [
     ["+experiment=icp_init", "method=icp", "icp_init=learned"],
     ["+experiment=icp_init", "method=color_icp", "icp_init=learned"],
