@@ -45,7 +45,8 @@ from pcrcg.config import (CONF_DIR, color_enabled, geometry_only, needs_training
 from pcrcg.device import resolve_device, torch_threads
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
-from pcrcg.tracking.hashing import COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain, without
+from pcrcg.tracking.hashing import (COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain,
+                                    with_weights_digest, without)
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.tracker import RunTracker
@@ -280,12 +281,37 @@ def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_
     ``sift_dlt`` reads ``matcher2d``, so its runs keep them), and without ``seed`` when nothing the run
     computes reads it (:func:`pcrcg.config.seed_independent`: ICP / ColorICP from the identity), so that a
     sweep over seeds runs it once."""
+    return config_hash(hashed_config(cfg, exclude), ())
+
+
+def hashed_config(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> dict[str, Any]:
+    """What :func:`run_hash` hashes: the plain config without ``exclude``, without ``COLOR_ONLY`` for a
+    geometry-only model, without ``seed`` when nothing reads it, with ``encoder2d.weights_digest`` (the
+    bytes of the 2D weights file it names, when that file exists)."""
     data = to_plain(cfg)
     if geometry_only(data):
         data = without(data, COLOR_ONLY)
     if seed_independent(data):
         data = without(data, ("seed",))
-    return config_hash(data, exclude)
+    return with_weights_digest(without(data, exclude))
+
+
+def config_difference(ours: Mapping[str, Any], theirs: Mapping[str, str], limit: int = 6) -> str:
+    """The settings of :func:`hashed_config` ``ours`` whose logged value differs in another run's params
+    ``theirs`` (``{"a.b": "value"}``, as :meth:`RunTracker.log_params` wrote them), as one line: ``key
+    (here: x, there: y)`` each, at most ``limit``; a setting that run did not log reads ``not logged``."""
+    from pcrcg.tracking.tracker import MAX_PARAM_LEN
+
+    diffs = []
+    for key, value in flatten(ours).items():
+        mine = str(value)[:MAX_PARAM_LEN]
+        there = theirs.get(key)
+        if there != mine:
+            diffs.append(f"{key} (here: {mine}, there: {'not logged' if there is None else there})")
+    if not diffs:
+        return "no logged setting differs (the hash covers more than the run logged)"
+    more = f", and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
 
 
 def train_key(cfg: DictConfig) -> str:
@@ -412,6 +438,12 @@ def _skip_if_finished(cfg: DictConfig, job: JobInfo, tracker: "RunTracker", h: s
     if older is not None:
         print(f"[run] run {older.run_id} with config hash {h} FINISHED with other code: running {name!r} "
               f"again with code version {code} (logger.identity=config would skip it)")
+        return None
+    same_job = tracker.find_finished_named(name, code)
+    if same_job is not None:  # the same overrides, another config: say what changed (a remade weights file, ...)
+        print(f"[run] run {same_job.run_id} of the same job {name!r} FINISHED with config hash "
+              f"{same_job.config_hash}, this config is {h}: running it; what differs: "
+              f"{config_difference(hashed_config(cfg), tracker.params(same_job.run_id))}")
     return None
 
 
@@ -434,7 +466,7 @@ def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, t0: fl
         with sigterm_as_interrupt(), torch_threads(OmegaConf.select(cfg, "trainer.num_threads"), ctx.device):
             if tracker is not None:
                 run_id = ctx.run_id = tracker.start(name, _tags(cfg, data, h, job))
-                tracker.log_params(run_id, flatten(data))
+                tracker.log_params(run_id, {**flatten(data), **_digest_params(data)})
                 _log_config_files(tracker, run_id, data, job)
             for stage in _work(ctx, data, h, t0):
                 pass
@@ -541,6 +573,13 @@ def _tags(cfg: DictConfig, data: Mapping[str, Any], h: str, job: JobInfo) -> dic
     if job.sweep_dir:
         tags["sweep_dir"] = job.sweep_dir
     return tags
+
+
+def _digest_params(data: Mapping[str, Any]) -> dict[str, str]:
+    """``encoder2d.weights_digest``, logged beside the config: part of the run's identity (the weights
+    file's bytes), so that a relaunch can say that a remade file is why a finished job runs again."""
+    digest = with_weights_digest({"encoder2d": dict(data.get("encoder2d") or {})})["encoder2d"].get("weights_digest")
+    return {"encoder2d.weights_digest": digest} if digest else {}
 
 
 def _log_config_files(tracker: "RunTracker", run_id: str, data: Mapping[str, Any], job: JobInfo) -> None:

@@ -293,6 +293,34 @@ def test_the_skip_rule_follows_logger_identity(tmp_path, monkeypatch, capsys):
         _identity_job(tmp_path, monkeypatch, "C", "logger.identity=code")
 
 
+def test_a_finished_job_that_runs_again_says_which_setting_changed(tmp_path, monkeypatch, capsys):
+    """A relaunched job whose config hash changed under the same overrides (here: the 2D weights file was
+    made again, with other bytes, as on a machine that lost checkpoints/) runs again and says why, naming
+    the setting with both values; the digest is logged with the run's params."""
+    from test_run_support import tracked_runs
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    w = tmp_path / "pri3d.pth"
+    w.write_bytes(b"weights made in the first sitting")
+    first = _identity_job(tmp_path, monkeypatch, "A", f"encoder2d.weights={w}")
+    assert first.status == "finished"
+    w.write_bytes(b"weights made again on a fresh machine")
+    capsys.readouterr()
+    again = _identity_job(tmp_path, monkeypatch, "A", f"encoder2d.weights={w}")
+    out = capsys.readouterr().out
+    assert again.status == "finished" and again.config_hash != first.config_hash
+    old, new = _sha16(b"weights made in the first sitting"), _sha16(b"weights made again on a fresh machine")
+    assert (f"run {first.run_id} of the same job 'encoder2d.weights={w}' FINISHED with config hash "
+            f"{first.config_hash}, this config is {again.config_hash}: running it; what differs: "
+            f"encoder2d.weights_digest (here: {new}, there: {old})") in out
+    params = {r.info.run_id: r.data.params.get("encoder2d.weights_digest") for r in tracked_runs(uri, "identity")}
+    assert params == {first.run_id: old, again.run_id: new}
+    # the same config again: skipped, no such line
+    assert _identity_job(tmp_path, monkeypatch, "A", f"encoder2d.weights={w}").status == "skipped"
+    assert "of the same job" not in capsys.readouterr().out
+
+
 def test_the_checkpoint_cache_key_follows_logger_identity(tmp_path, monkeypatch):
     import json
 

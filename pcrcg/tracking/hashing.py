@@ -76,7 +76,7 @@ def file_digest(path: str | os.PathLike) -> str:
     return _DIGESTS[key]
 
 
-def _with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
+def with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
     """A run's identity includes what its 2D weights file holds, not only its path: retraining
     the weights into the same file makes the runs that load it new runs."""
     node = data.get("encoder2d")
@@ -88,7 +88,7 @@ def _with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
 
 def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
     """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``."""
-    data = _with_weights_digest(without(to_plain(cfg), exclude))
+    data = with_weights_digest(without(to_plain(cfg), exclude))
     blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -29,7 +29,7 @@ from pcrcg.tracking.store import client, ensure_experiment, ensure_store
 _MAX_PARAMS = 100
 _MAX_METRICS = 1000
 _MAX_TAGS = 100
-_MAX_PARAM_LEN = 6000
+MAX_PARAM_LEN = 6000
 _MAX_TAG_LEN = 5000
 
 # tags every run carries
@@ -134,6 +134,21 @@ class RunTracker:
         r = runs[0]
         return FinishedRun(r.info.run_id, r.info.run_name or "", config_hash)
 
+    def find_finished_named(self, run_name: str, code_version: str | None = None) -> FinishedRun | None:
+        """The newest FINISHED run of this experiment named ``run_name`` (the same job's overrides), whatever
+        its config hash (and, when given, whose ``code_version`` tag is ``code_version``)."""
+        code = f" and tags.{TAG_CODE} = '{code_version}'" if code_version is not None else ""
+        runs = self.client.search_runs([self.experiment_id], filter_string=f"attributes.status = 'FINISHED'{code}",
+                                       max_results=5000, order_by=["attributes.start_time DESC"])
+        for r in runs:
+            if (r.info.run_name or "") == run_name:
+                return FinishedRun(r.info.run_id, run_name, r.data.tags.get(TAG_HASH, ""))
+        return None
+
+    def params(self, run_id: str) -> dict[str, str]:
+        """The run's logged params (``{"a.b": "value"}``)."""
+        return dict(self.client.get_run(run_id).data.params)
+
     # ------------------------------------------------------------------ life cycle
     def start(self, run_name: str, tags: Mapping[str, str]) -> str:
         run = self.client.create_run(self.experiment_id, run_name=run_name, tags={**owner_tags(), **dict(tags)})
@@ -193,7 +208,7 @@ class RunTracker:
     def log_params(self, run_id: str, params: Mapping[str, Any]) -> None:
         from mlflow.entities import Param
 
-        items = [Param(k, str(v)[:_MAX_PARAM_LEN]) for k, v in params.items()]
+        items = [Param(k, str(v)[:MAX_PARAM_LEN]) for k, v in params.items()]
         for i in range(0, len(items), _MAX_PARAMS):
             self.client.log_batch(run_id, params=items[i:i + _MAX_PARAMS])
 
