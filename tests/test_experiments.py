@@ -94,19 +94,24 @@ def test_one_lane_runs_every_job_in_order_and_a_bad_lane_count_stops_before_any_
     assert none.returncode == 2 and "ONLY=^views matches no job" in none.stderr and " -m pcrcg." not in none.stdout
 
 
-def test_the_lanes_queue_gives_every_job_to_exactly_one_lane(tmp_path):
-    """Two lanes at once take jobs from one queue (sweeps/lib.sh next_job): each job runs once, none is lost."""
-    script = f"""
-set -u
+def _lanes(tmp_path, body: str) -> subprocess.CompletedProcess:
+    """sweeps/lib.sh's two_lanes in bash on a store and logs in ``tmp_path``, after ``body`` (the jobs, and the
+    functions that stand in for the real ones)."""
+    script = f"""set -u
 . sweeps/lib.sh
 LOGS={tmp_path}
 MLFLOW_TRACKING_URI=sqlite:///{tmp_path}/m.db
 PYTHON=true
-JOBS=(a b c d e f g h i j k)
-job() {{ sleep 0.0$RANDOM; echo "$2" >>{tmp_path}/done; }}
+{body}
 two_lanes
 """
-    out = subprocess.run(["bash", "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+    return subprocess.run(["bash", "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+
+
+def test_the_lanes_queue_gives_every_job_to_exactly_one_lane(tmp_path):
+    """Two lanes at once take jobs from one queue (sweeps/lib.sh next_job): each job runs once, none is lost."""
+    out = _lanes(tmp_path, f"""JOBS=(a b c d e f g h i j k)
+job() {{ sleep 0.0$RANDOM; echo "$2" >>{tmp_path}/done; }}""")
     assert out.returncode == 0, out.stderr
     assert sorted((tmp_path / "done").read_text().split()) == list("abcdefghijk")
     assert not list(tmp_path.glob("queue.*"))
@@ -116,18 +121,10 @@ def test_a_lane_calls_the_scripts_after_job_hook_after_each_of_its_jobs(tmp_path
     """sweeps/lib.sh lane: after each job, the script's `after_job <log> <job words...>` (findings.sh evaluates
     the job's experiment on the real scene while the checkpoint is still on the machine), right after that job
     and in the lane that ran it; none in a dry run."""
-    script = f"""
-set -u
-. sweeps/lib.sh
-LOGS={tmp_path}
-MLFLOW_TRACKING_URI=sqlite:///{tmp_path}/m.db
-PYTHON=true
-JOBS=("a x=1" "b x=2" "c x=3" "d x=4" "e x=5")
+    body = f"""JOBS=("a x=1" "b x=2" "c x=3" "d x=4" "e x=5")
 job() {{ echo "job $1 $2 $3" >>{tmp_path}/events; }}
-after_job() {{ echo "after $1 $2 $3" >>{tmp_path}/events; }}
-two_lanes
-"""
-    out = subprocess.run(["bash", "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+after_job() {{ echo "after $1 $2 $3" >>{tmp_path}/events; }}"""
+    out = _lanes(tmp_path, body)
     assert out.returncode == 0, out.stderr
     events = (tmp_path / "events").read_text().splitlines()
     assert len(events) == 10
@@ -138,8 +135,7 @@ two_lanes
         assert [j for _, j in mine[0::2]] == [j for _, j in mine[1::2]]
     assert sorted(e.split(" ", 2)[2] for e in events if e.startswith("after")) == [
         "a x=1", "b x=2", "c x=3", "d x=4", "e x=5"]
-    dry = subprocess.run(["bash", "-c", script.replace("set -u", "set -u\nDRY_RUN=1")], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    dry = _lanes(tmp_path, "DRY_RUN=1\n" + body)
     assert dry.returncode == 0, dry.stderr
     assert "after" not in dry.stdout
 
