@@ -170,8 +170,8 @@ def store(tmp_path, monkeypatch, tiny_root):
     tracker = RunTracker(uri, "main_results")
     config = to_plain(compose("run", ["profile=tiny", f"data.root={tiny_root}"]))
 
-    def add(checkpoint: bytes | None = None, method: str = "learned") -> str:
-        rid = tracker.start("hand-made", {"method": method})
+    def add(checkpoint: bytes | None = None, method: str = "learned", overrides: str | None = None) -> str:
+        rid = tracker.start("hand-made", {"method": method, **({"overrides": overrides} if overrides else {})})
         cdir = tmp_path / rid
         cdir.mkdir()
         (cdir / "config.yaml").write_text(yaml.safe_dump({**config, "method": method}))
@@ -191,19 +191,25 @@ def test_a_run_without_its_checkpoint_is_skipped_and_a_classical_run_is_run_agai
     from pcrcg.evaluation.tracked import CLASSICAL_FROM
 
     gone = store["add"]()
+    tagged = store["add"](overrides="features=none +experiment=main_results profile=tiny seed=1")
     icp = store["add"](method="icp")
     res = _tracked(["experiments=[main_results]", f"data.root={tiny_root}", f"name={NAME}"])
     assert res["failed"] == []
     reasons = {s["run_id"]: s["reason"] for s in res["skipped"]}
-    assert set(reasons) == {gone}
+    assert set(reasons) == {gone, tagged}
     assert reasons[gone].startswith("checkpoint not found (looked at: artifact checkpoint/model.ckpt")
+    assert reasons[gone].endswith(")")  # no overrides tag: no command
+    # a run that says how it was launched: the command that trains its config again, into a new run
+    assert reasons[tagged].endswith("; to train it again into a new run of the same config (the report counts the "
+                                    "newest): python -m pcrcg.run features=none +experiment=main_results "
+                                    "profile=tiny seed=1 logger.skip_finished=false")
     (done,) = res["evaluated"]
     assert done["run_id"] == icp and done["checkpoint"] is None
     run = _client(store["uri"]).get_run(icp)
     assert {f"{NAME}/3DMatch/rr", f"{NAME}/3DLoMatch/rr"} <= set(run.data.metrics)
     assert run.data.tags[f"{NAME}.checkpoint"] == CLASSICAL_FROM
     again = _tracked(["experiments=[main_results]", f"data.root={tiny_root}", f"name={NAME}"])
-    assert again["evaluated"] == [] and {s["run_id"] for s in again["skipped"]} == {gone, icp}
+    assert again["evaluated"] == [] and {s["run_id"] for s in again["skipped"]} == {gone, tagged, icp}
 
 
 def test_a_corrupt_checkpoint_is_named_before_work(store, tiny_root):

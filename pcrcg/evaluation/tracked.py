@@ -304,6 +304,17 @@ def find_checkpoint(mlflow_client: Any, run: Any, config: Mapping[str, Any], bas
     return None, "checkpoint not found (looked at: " + "; ".join(looked) + ")"
 
 
+def retrain_hint(run: Any) -> str:
+    """For a run whose checkpoint is gone (a machine that kept the store and lost ``checkpoints/``): the
+    command that trains the same config again into a new run of the same experiment (the tables count
+    a seed's newest run), from the run's ``overrides`` tag; empty when the run has none."""
+    overrides = (run.data.tags or {}).get("overrides", "").strip()
+    if not overrides:
+        return ""
+    return (f"; to train it again into a new run of the same config (the report counts the newest): "
+            f"python -m pcrcg.run {overrides} logger.skip_finished=false")
+
+
 def model_views(checkpoint: Path) -> int:
     """Views per fragment the model lifts color from (0: geometry only); the file is read with
     :func:`pcrcg.models.train.read_checkpoint` first (no code runs; a corrupt file is a DataError)."""
@@ -375,7 +386,7 @@ def plan(mlflow_client: Any, experiments: Mapping[str, str], *, name: str, root:
             if trains_model(config):
                 ckpt, found = find_checkpoint(mlflow_client, run, config, base_dir, tmp)
                 if ckpt is None:
-                    skip(found)
+                    skip(found + retrain_hint(run))
                     continue
                 n_views = model_views(ckpt)
             elif method in CLASSICAL:  # no model: the method runs again; SIFT reads the views
