@@ -220,6 +220,42 @@ def test_config_hash_follows_the_weights_file_contents(tmp_path):
         assert config_hash(cfg) == _sha16(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode())
 
 
+def test_weights_made_again_bit_for_bit_are_the_same_weights(tmp_path):
+    """The 2D weights' digest covers the tensors, not the file's bytes: this project's weights file holds
+    when and where it was made (``meta``), so the same pretraining run again on a fresh machine wrote other
+    bytes and every finished run that loads it counted as another config. Other tensors: other weights."""
+    import torch
+
+    from pcrcg.tracking.hashing import config_hash, weights_digest
+
+    state = {"enc.weight": torch.arange(6, dtype=torch.float32).reshape(2, 3), "bn.num_batches_tracked": torch.tensor(4)}
+
+    def save(name, meta, sd=state):
+        path = tmp_path / name
+        torch.save({"format": "pcrcg-encoder2d", "version": 1, "arch": "resnet18", "state_dict": sd, "meta": meta}, path)
+        return path
+
+    first = save("a.pth", {"created": "2026-12-05 15:03:16", "seconds": 809.9})
+    again = save("b.pth", {"created": "2026-12-05 15:47:23", "seconds": 416.5})
+    assert first.read_bytes() != again.read_bytes()
+    assert weights_digest(first) == weights_digest(again)
+    cfg = lambda p: {"encoder2d": {"name": "pri3d", "weights": str(p)}, "seed": 0}  # noqa: E731
+    assert config_hash(cfg(first)) != config_hash(cfg(again))  # the paths differ ...
+    other = {**state, "enc.weight": state["enc.weight"] + 1e-6}
+    assert weights_digest(save("c.pth", {"created": "x"}, other)) != weights_digest(first)
+    # ... the same path made again with the same tensors: the same run identity
+    h = config_hash(cfg(first))
+    save("a.pth", {"created": "later"})
+    os.utime(first, ns=(1, 2))
+    assert config_hash(cfg(first)) == h
+    # a plain state dict (an ImageNet file, say) by its tensors too; a file torch cannot read, by its bytes
+    torch.save(state, tmp_path / "plain.pth")
+    torch.save(dict(state), tmp_path / "plain2.pth")
+    assert weights_digest(tmp_path / "plain.pth") == weights_digest(tmp_path / "plain2.pth")
+    (tmp_path / "raw.bin").write_bytes(b"not torch")
+    assert weights_digest(tmp_path / "raw.bin") == _sha16(b"not torch")
+
+
 # --------------------------------------------------------------------------- run identity: config and code
 
 

@@ -76,13 +76,57 @@ def file_digest(path: str | os.PathLike) -> str:
     return _DIGESTS[key]
 
 
+_WEIGHTS_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def weights_digest(path: str | os.PathLike) -> str:
+    """What a weights file holds, as 16 hex chars, remembered per (path, size, mtime). A file that torch
+    reads as tensors (``weights_only=True``: no code from it runs): the SHA-256 over its tensors (name,
+    dtype, shape, bytes, in name order) and other values, of its ``state_dict`` where it has one (this
+    project's format, whose ``meta`` holds when and where it was made: left out), so that weights made
+    again bit for bit are the same weights. Any other file: its bytes (:func:`file_digest`)."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _WEIGHTS_DIGESTS:
+        import torch
+
+        try:
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:  # not a torch file (or not one of tensors): its bytes
+            obj = None
+        if isinstance(obj, Mapping):
+            content = obj.get("state_dict") if isinstance(obj.get("state_dict"), Mapping) else obj
+            h = hashlib.sha256()
+            _digest_tree(h, content, "")
+            _WEIGHTS_DIGESTS[key] = h.hexdigest()[:16]
+        else:
+            _WEIGHTS_DIGESTS[key] = file_digest(path)
+    return _WEIGHTS_DIGESTS[key]
+
+
+def _digest_tree(h: "hashlib._Hash", node: Any, name: str) -> None:
+    """Feeds ``node`` (nested mappings of tensors and plain values) into ``h`` in key order."""
+    import torch
+
+    if isinstance(node, Mapping):
+        for k in sorted(node, key=str):
+            _digest_tree(h, node[k], f"{name}/{k}")
+    elif isinstance(node, torch.Tensor):
+        t = node.detach().cpu().contiguous().reshape(-1)
+        h.update(f"{name} {t.dtype} {tuple(node.shape)}\n".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes())
+    else:
+        h.update(f"{name} {node!r}\n".encode())
+
+
 def with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
     """A run's identity includes what its 2D weights file holds, not only its path: retraining
-    the weights into the same file makes the runs that load it new runs."""
+    the weights into the same file makes the runs that load it new runs; making the same weights
+    again does not (:func:`weights_digest`)."""
     node = data.get("encoder2d")
     weights = node.get("weights") if isinstance(node, dict) else None
     if isinstance(weights, str) and weights and os.path.isfile(weights):
-        node["weights_digest"] = file_digest(weights)
+        node["weights_digest"] = weights_digest(weights)
     return data
 
 
