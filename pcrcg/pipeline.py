@@ -274,26 +274,29 @@ def train_model(ctx: RunContext) -> TrainOutput:
     return out
 
 
-def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
+def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE,
+             weights_by_bytes: bool = False) -> str:
     """A run's identity: :func:`config_hash` of its config (``exclude``: ``HASH_EXCLUDE`` for the run,
     ``TRAIN_HASH_EXCLUDE`` for its training), without the ``COLOR_ONLY`` settings when it trains or
     evaluates a geometry-only learned model (``method`` learned or left out; a classical method such as
     ``sift_dlt`` reads ``matcher2d``, so its runs keep them), and without ``seed`` when nothing the run
     computes reads it (:func:`pcrcg.config.seed_independent`: ICP / ColorICP from the identity), so that a
     sweep over seeds runs it once."""
-    return config_hash(hashed_config(cfg, exclude), ())
+    return config_hash(hashed_config(cfg, exclude, weights_by_bytes), (), weights_by_bytes)
 
 
-def hashed_config(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> dict[str, Any]:
+def hashed_config(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE,
+                  weights_by_bytes: bool = False) -> dict[str, Any]:
     """What :func:`run_hash` hashes: the plain config without ``exclude``, without ``COLOR_ONLY`` for a
     geometry-only model, without ``seed`` when nothing reads it, with ``encoder2d.weights_digest`` (the
-    bytes of the 2D weights file it names, when that file exists)."""
+    tensors of the 2D weights file it names, when that file exists; ``weights_by_bytes``: the file's bytes, as
+    code before aa220c7 hashed it, for reading older sweeps' stores)."""
     data = to_plain(cfg)
     if geometry_only(data):
         data = without(data, COLOR_ONLY)
     if seed_independent(data):
         data = without(data, ("seed",))
-    return with_weights_digest(without(data, exclude))
+    return with_weights_digest(without(data, exclude), by_bytes=weights_by_bytes)
 
 
 def config_difference(ours: Mapping[str, Any], theirs: Mapping[str, str], limit: int = 6) -> str:

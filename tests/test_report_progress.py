@@ -44,6 +44,35 @@ def test_a_finished_run_is_found_by_its_config_and_code_and_the_rest_is_estimate
     text = render(states, 2, run["code"], uri)
     assert "1 finished, 0 running, 0 stale, 0 older code, 2 to run, 1 same as" in text
     assert "Left: 2 runs" in text and "(1 without an estimate)" in text
+    assert "real scene" not in text.split("|---")[-1]  # no real data named: no line about it
+    # the findings read sift_dlt on the real scene: the finished run has not been evaluated there yet
+    real = job_states(planned, runs, run["code"], real="real-redkitchen", real_experiments=["sift_dlt"])
+    assert [s.real for s in real] == ["no", "", "", ""]
+    assert "Finished but not on the real scene: #1 " in render(real, 2, run["code"], uri)
+    runs["sift_dlt"][0]["data"] = {"real-redkitchen"}
+    seen = job_states(planned, runs, run["code"], real="real-redkitchen", real_experiments=["sift_dlt"])
+    assert seen[0].real == "yes" and "not on the real scene" not in render(seen, 2, run["code"], uri)
+
+
+def test_a_run_hashed_by_older_code_from_its_weights_files_bytes_is_found(tmp_path):
+    """Code before aa220c7 digested a 2D weights file's bytes, this code its tensors: a sweep of such a version
+    (``--code-version``) is read with both, so its finished runs are found; a run of other weights is not."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from pcrcg.pipeline import run_hash
+    from pcrcg.tracking.hashing import to_plain
+
+    w = tmp_path / "pri3d.pth"
+    torch.save({"state_dict": {"w": torch.ones(3)}, "meta": {"created": "today"}}, w)
+    cfg = OmegaConf.create({"experiment_name": "e", "seed": 0, "method": "sift_dlt", "encoder2d": {"weights": str(w)}})
+    old, new = run_hash(to_plain(cfg), weights_by_bytes=True), run_hash(to_plain(cfg))
+    assert old != new
+    planned = [("e", ["x=1"], 0, cfg)]
+    for h, want in ((old, "finished"), (new, "finished"), ("other weights", "to run")):
+        store = {"e": [{"id": "r", "hash": h, "code": "c", "seconds": 5.0, "name": "x=1 seed=0",
+                        "status": "FINISHED", "stale": False}]}
+        assert job_states(planned, store, "c")[0].state == want, h
 
 
 def test_a_running_run_whose_process_is_gone_is_stale():

@@ -55,6 +55,7 @@ class JobState:
     seconds: float | None = None
     run_id: str | None = None
     store_experiment: str = ""  # the MLflow experiment its runs go to (the config's experiment_name)
+    real: str = ""  # a finished run the findings read on the real scene: "yes" when it has its metrics, else "no"
 
     @property
     def label(self) -> str:
@@ -119,8 +120,9 @@ def check_store(uri: str) -> None:
 
 
 def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str, Any]]]:
-    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name", "stale"}``
-    (read-only; ``stale``: RUNNING, and its process on this host is gone)."""
+    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name", "stale", "data"}``
+    (read-only; ``stale``: RUNNING, and its process on this host is gone; ``data``: the prefixes of its metrics
+    ``<name>/...``, e.g. the real scene's, that ``pcrcg.evaluate mode=tracked name=<name>`` logged)."""
     from pcrcg.tracking.store import client
     from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH, is_stale
 
@@ -132,16 +134,22 @@ def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str
         runs = c.search_runs([exp.experiment_id], max_results=50000) if exp is not None else []
         out[name] = [{"id": r.info.run_id, "hash": r.data.tags.get(TAG_HASH), "code": r.data.tags.get(TAG_CODE),
                       "status": r.info.status, "seconds": r.data.metrics.get("time/total_s"),
-                      "name": r.info.run_name or "", "stale": is_stale(r.info.status, r.data.tags)}
+                      "name": r.info.run_name or "", "stale": is_stale(r.info.status, r.data.tags),
+                      "data": {k.split("/", 1)[0] for k in r.data.metrics if "/" in k}}
                      for r in runs]
     return out
 
 
 def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping[str, list[dict[str, Any]]],
-               code: str, reference: Mapping[str, list[dict[str, Any]]] | None = None) -> list[JobState]:
+               code: str, reference: Mapping[str, list[dict[str, Any]]] | None = None, real: str | None = None,
+               real_experiments: Iterable[str] = ()) -> list[JobState]:
     """What the store (``runs``, per experiment name: :func:`_store_runs`) holds for each planned run
     (:data:`STATES`), with the wall time of a finished one, and for the others an estimate (:func:`_estimate`, from
-    ``runs`` and the ``reference`` store's runs)."""
+    ``runs`` and the ``reference`` store's runs). ``real``: the real data set's metric prefix; a finished run of
+    ``real_experiments`` says whether it has been evaluated there. A run's hash is looked up as this checkout
+    hashes it and as code before aa220c7 did (2D weights by the file's bytes: :func:`pcrcg.pipeline.run_hash`
+    ``weights_by_bytes``), so that a sweep of an older code version (``--code-version``) is read right."""
+    on_real = set(real_experiments) if real else set()
     from pcrcg.pipeline import run_hash
     from pcrcg.tracking.hashing import to_plain
 
@@ -149,6 +157,7 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
     first: dict[tuple[str, str], int] = {}
     for exp, ov, seed, cfg in planned:
         h = run_hash(to_plain(cfg))
+        hashes = {h, run_hash(to_plain(cfg), weights_by_bytes=True)}
         overrides = tuple(o for o in ov if not o.startswith(("profile=", "seed=")))
         name = str(cfg.experiment_name)
         key = (name, h)  # a run skips only runs of its own experiment
@@ -156,7 +165,7 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
             states.append(JobState(exp, overrides, seed, h, f"same as #{first[key] + 1}", store_experiment=name))
             continue
         first[key] = len(states)
-        mine = [r for r in runs.get(name, []) if r["hash"] == h]
+        mine = [r for r in runs.get(name, []) if r["hash"] in hashes]
         done = [r for r in mine if r["status"] == "FINISHED" and r["code"] == code]
         if done:
             state, r = "finished", done[0]
@@ -168,8 +177,9 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
             state, r = "older code", None
         else:
             state, r = "to run", None
+        seen = ("yes" if real in r.get("data", ()) else "no") if r and exp in on_real else ""
         states.append(JobState(exp, overrides, seed, h, state, r["seconds"] if r else None, r["id"] if r else None,
-                               store_experiment=name))
+                               store_experiment=name, real=seen))
     merged = {k: [*runs.get(k, []), *(reference or {}).get(k, [])] for k in {*runs, *(reference or {})}}
     _estimate(states, merged)
     return states
@@ -203,11 +213,11 @@ def _hms(seconds: float | None) -> str:
 def render(states: Sequence[JobState], lanes: int, code: str, uri: str) -> str:
     """The progress table (one line per run, in the sweep's order) and the totals."""
     lines = [f"Store {uri}, code version {code}: the findings sweep, {len(states)} runs", "",
-             "| # | seed | job | state | wall time |", "|---:|---:|---|---|---:|"]
+             "| # | seed | job | state | wall time | real scene |", "|---:|---:|---|---|---:|---|"]
     for k, s in enumerate(states, 1):
         t = (_hms(s.seconds) if s.state == "finished" else "–" if s.state.startswith("same as")
              else f"~{_hms(s.seconds)}" if s.seconds else "?")
-        lines.append(f"| {k} | {s.seed} | {s.label} | {s.state} | {t} |")
+        lines.append(f"| {k} | {s.seed} | {s.label} | {s.state} | {t} | {s.real or '–'} |")
     counts = {st: sum(s.state.startswith(st) for s in states) for st in STATES}
     left = [s for s in states if s.state not in ("finished",) and not s.state.startswith("same as")]
     known = [s.seconds for s in left if s.seconds is not None]
@@ -216,6 +226,11 @@ def render(states: Sequence[JobState], lanes: int, code: str, uri: str) -> str:
               f"Finished runs' wall time: {_hms(done_s)} in all.",
               f"Left: {len(left)} runs, ~{_hms(sum(known))} of run time ({len(left) - len(known)} without an "
               f"estimate), ~{_hms(sum(known) / max(lanes, 1))} of wall time on {lanes} lane(s)."]
+    missing = [k for k, s in enumerate(states, 1) if s.real == "no"]
+    if missing:
+        lines.append(f"Finished but not on the real scene: {', '.join(f'#{k}' for k in missing)} (the sweep evaluates "
+                     "them after their job; `python -m pcrcg.evaluate mode=tracked` names a run whose checkpoint is "
+                     "gone, with the command that trains it again).")
     return "\n".join(lines)
 
 
@@ -253,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = _store_runs(uri, names)
         ref = _store_runs(resolve_tracking_uri(args.estimates_from), names) if args.estimates_from else {}
         code = args.code_version or code_version()
-        print(render(job_states(planned, runs, code, ref), args.lanes, code, uri))
+        print(render(job_states(planned, runs, code, ref, spec.real, spec.real_experiments), args.lanes, code, uri))
     except PcrcgError as e:
         print(f"python -m pcrcg.report.progress: {e}", file=sys.stderr)
         return 2

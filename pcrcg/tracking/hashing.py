@@ -119,20 +119,22 @@ def _digest_tree(h: "hashlib._Hash", node: Any, name: str) -> None:
         h.update(f"{name} {node!r}\n".encode())
 
 
-def with_weights_digest(data: dict[str, Any]) -> dict[str, Any]:
+def with_weights_digest(data: dict[str, Any], by_bytes: bool = False) -> dict[str, Any]:
     """A run's identity includes what its 2D weights file holds, not only its path: retraining
     the weights into the same file makes the runs that load it new runs; making the same weights
-    again does not (:func:`weights_digest`)."""
+    again does not (:func:`weights_digest`; ``by_bytes``: the file's bytes, :func:`file_digest`, as before)."""
     node = data.get("encoder2d")
     weights = node.get("weights") if isinstance(node, dict) else None
     if isinstance(weights, str) and weights and os.path.isfile(weights):
-        node["weights_digest"] = weights_digest(weights)
+        node["weights_digest"] = file_digest(weights) if by_bytes else weights_digest(weights)
     return data
 
 
-def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
-    """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``."""
-    data = with_weights_digest(without(to_plain(cfg), exclude))
+def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE,
+                weights_by_bytes: bool = False) -> str:
+    """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``, with its 2D
+    weights' digest (:func:`with_weights_digest`)."""
+    data = with_weights_digest(without(to_plain(cfg), exclude), by_bytes=weights_by_bytes)
     blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
