@@ -45,8 +45,8 @@ from pcrcg.config import (CONF_DIR, color_enabled, geometry_only, needs_training
 from pcrcg.device import resolve_device, torch_threads
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
-from pcrcg.tracking.hashing import (COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, flatten, to_plain,
-                                    with_weights_digest, without)
+from pcrcg.tracking.hashing import (COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, data_hash, flatten,
+                                    to_plain, with_weights_digest, without)
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.tracker import RunTracker
@@ -282,7 +282,7 @@ def run_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_
     ``sift_dlt`` reads ``matcher2d``, so its runs keep them), and without ``seed`` when nothing the run
     computes reads it (:func:`pcrcg.config.seed_independent`: ICP / ColorICP from the identity), so that a
     sweep over seeds runs it once."""
-    return config_hash(hashed_config(cfg, exclude, weights_by_bytes), (), weights_by_bytes)
+    return data_hash(hashed_config(cfg, exclude, weights_by_bytes))
 
 
 def hashed_config(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE,

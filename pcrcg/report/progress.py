@@ -149,10 +149,10 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
     ``real_experiments`` says whether it has been evaluated there. A run's hash is looked up as this checkout
     hashes it and as code before aa220c7 did (2D weights by the file's bytes: :func:`pcrcg.pipeline.run_hash`
     ``weights_by_bytes``), so that a sweep of an older code version (``--code-version``) is read right."""
-    on_real = set(real_experiments) if real else set()
     from pcrcg.pipeline import run_hash
     from pcrcg.tracking.hashing import to_plain
 
+    on_real = set(real_experiments) if real else set()
     states: list[JobState] = []
     first: dict[tuple[str, str], int] = {}
     for exp, ov, seed, cfg in planned:

@@ -130,11 +130,14 @@ def with_weights_digest(data: dict[str, Any], by_bytes: bool = False) -> dict[st
     return data
 
 
-def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE,
-                weights_by_bytes: bool = False) -> str:
+def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
     """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``, with its 2D
     weights' digest (:func:`with_weights_digest`)."""
-    data = with_weights_digest(without(to_plain(cfg), exclude), by_bytes=weights_by_bytes)
+    return data_hash(with_weights_digest(without(to_plain(cfg), exclude)))
+
+
+def data_hash(data: Mapping[str, Any]) -> str:
+    """16 hex chars of the SHA-256 of the canonical JSON of plain ``data``, hashed as it is."""
     blob = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
