@@ -14,7 +14,7 @@ from lightning.pytorch.callbacks import Callback
 
 from pcrcg.errors import DataError
 from pcrcg.data.layout import PairRecord, write_gt_log, write_pairs, write_ply
-from pcrcg.models.datamodule import PairCollate, PairDataModule
+from pcrcg.models.datamodule import EpochSampler, PairCollate, PairDataModule
 from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
 from pcrcg.models.module import PCRCGModule
 from pcrcg.testing.pairs import toy_pair
@@ -92,17 +92,25 @@ def test_adam_option_and_unknown_optimiser():
 
 
 class CountSteps(Callback):
-    def __init__(self, fail_at: int | None = None):
+    """Counts training steps; raises at the end of step ``fail_at`` (or, ``before=True``, as the step after
+    it starts)."""
+
+    def __init__(self, fail_at: int | None = None, before: bool = False):
         self.steps = 0
         self.fail_at = fail_at
+        self.before = before
+
+    def on_train_batch_start(self, trainer, *args):
+        if self.before and trainer.global_step == self.fail_at:
+            raise RuntimeError("simulated crash")
 
     def on_train_batch_end(self, trainer, *args):
         self.steps += 1
-        if self.fail_at is not None and trainer.global_step == self.fail_at:
+        if not self.before and self.fail_at is not None and trainer.global_step == self.fail_at:
             raise RuntimeError("simulated crash")
 
 
-def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root, monkeypatch):
+def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root3, monkeypatch):
     saves = []
     real_save = L.Trainer.save_checkpoint
 
@@ -113,7 +121,7 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root, m
     monkeypatch.setattr(L.Trainer, "save_checkpoint", spy)
     # no periodic checkpoint before the crash: last.ckpt must come from the crash itself
     cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=4, checkpoint_every_n_steps=100), "seed": 0,
-           "data": {"root": str(toy_root)}}
+           "data": {"root": str(toy_root3)}}
     out_dir = tmp_path / "run"
     first = CountSteps(fail_at=2)
     with pytest.raises(RuntimeError, match="simulated crash"):
@@ -131,7 +139,7 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root, m
     second = CountSteps()
     res = train(cfg, out_dir=out_dir, callbacks=[second])
     assert second.steps == 2
-    assert res["metrics"]["train/global_step"] == 4, res["metrics"]
+    assert res["metrics"]["train/global_step"] == 4 and res["metrics"]["train/resumed_from_step"] == 2, res["metrics"]
     assert any(k.startswith("train/loss") for k in res["history"])
     ck2 = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
     assert ck2["global_step"] == 4 and ck2["epoch"] >= ck["epoch"]
@@ -141,6 +149,85 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root, m
     third = CountSteps()
     train(cfg, out_dir=out_dir, callbacks=[third])
     assert third.steps == 0
+
+
+@pytest.fixture(scope="module")
+def toy_root3(tmp_path_factory) -> Path:
+    return write_toy_layout(tmp_path_factory.mktemp("toydata3"), n_pairs=3)
+
+
+def _final_state(out_dir: Path) -> dict:
+    ck = torch.load(out_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ck["global_step"] == 7
+    return ck
+
+
+@pytest.mark.parametrize("crash_at, before, every, resumed_at", [(2, False, 100, 2), (3, False, 1, 2), (3, True, 100, 3)],
+                         ids=["mid-epoch", "before-validation", "epoch-end"])
+def test_a_resumed_training_is_bit_for_bit_the_uninterrupted_one(tmp_path, toy_root3, crash_at, before, every,
+                                                                  resumed_at):
+    """3 pairs an epoch, 7 steps (epochs 0, 1 and one step of 2), augmentation on. Crashed after step 2 (mid
+    epoch: saved there), after step 3 (the epoch's last batch, its validation due: nothing is saved there, the
+    run resumes from step 2's periodic save) or as step 4 starts (resumes from epoch 0's end), the resumed
+    run's weights, optimiser state and validation curve are the uninterrupted run's."""
+    cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=7, max_epochs=10, checkpoint_every_n_steps=every),
+           "seed": 3, "data": {"root": str(toy_root3)}}
+    train(cfg, out_dir=tmp_path / "whole")
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg, out_dir=tmp_path / "cut", callbacks=[CountSteps(fail_at=crash_at, before=before)])
+    ck = torch.load(tmp_path / "cut" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ck["global_step"] == resumed_at
+    rest = CountSteps()
+    res = train(cfg, out_dir=tmp_path / "cut", callbacks=[rest])
+    assert rest.steps == 7 - resumed_at and res["metrics"]["train/resumed_from_step"] == resumed_at
+    a, b = _final_state(tmp_path / "whole"), _final_state(tmp_path / "cut")
+    differ = [k for k in a["state_dict"] if not torch.equal(a["state_dict"][k], b["state_dict"][k])]
+    assert not differ, f"{len(differ)} of {len(a['state_dict'])} tensors differ, e.g. {differ[:3]}"
+    for sa, sb in zip(a["optimizer_states"][0]["state"].values(), b["optimizer_states"][0]["state"].values()):
+        assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert a["epoch"] == b["epoch"]
+    best = [torch.load(d / "checkpoints" / "best.ckpt", map_location="cpu", weights_only=True)
+            for d in (tmp_path / "whole", tmp_path / "cut")]
+    assert best[0]["global_step"] == best[1]["global_step"]
+    assert all(torch.equal(best[0]["state_dict"][k], best[1]["state_dict"][k]) for k in best[0]["state_dict"])
+
+
+@pytest.mark.slow
+def test_loader_processes_change_no_result(tmp_path, toy_root3):
+    """The augmentations come from the sampler, not from the loader processes: 2 workers train the same weights."""
+    states = []
+    for workers in (0, 2):
+        cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=4, max_epochs=10, num_workers=workers), "seed": 1,
+               "data": {"root": str(toy_root3)}}
+        res = train(cfg, out_dir=tmp_path / f"w{workers}")
+        states.append(torch.load(res["last_checkpoint"], map_location="cpu", weights_only=True)["state_dict"])
+    assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+
+
+def test_the_epoch_sampler_is_a_function_of_seed_epoch_and_rank_alone():
+    torch.manual_seed(0)
+    before = torch.get_rng_state()
+    one = EpochSampler(range(10), seed=5)
+    e0, e1 = list(one), list(one)  # an epoch per iteration
+    assert torch.equal(torch.get_rng_state(), before)  # no global random state read or advanced
+    assert sorted(i for i, _ in e0) == list(range(10)) and [i for i, _ in e0] != [i for i, _ in e1]
+    assert len({seed for _, seed in e0 + e1}) == 20  # each (epoch, position) its own augmentation seed
+    assert list(EpochSampler(range(10), seed=5)) == e0 and list(EpochSampler(range(10), seed=6)) != e0
+    # sharded over 2 ranks: disjoint halves that together are the epoch
+    halves = [list(EpochSampler(range(10), seed=5, num_replicas=2, rank=r)) for r in (0, 1)]
+    assert sorted(i for h in halves for i, _ in h) == list(range(10))
+    # resumed at epoch 1 after 4 items: the rest of epoch 1, then epoch 2; at an epoch's end: the next epoch
+    again = EpochSampler(range(10), seed=5)
+    again.load_state_dict({"epoch": 1, "done": 4, "epoch_batches": 10})
+    assert list(again) == e1[4:] and again.state_dict()["epoch"] == 1
+    fresh = EpochSampler(range(10), seed=5)
+    e2 = [list(fresh) for _ in range(3)][-1]
+    assert list(again) == e2
+    ended = EpochSampler(range(10), seed=5)
+    ended.load_state_dict({"epoch": 0, "done": 10, "epoch_batches": 10})
+    assert list(ended) == e1
+    ended.set_epoch(7)  # Lightning's number is not the sampler's
+    assert list(ended) == e2
 
 
 def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):

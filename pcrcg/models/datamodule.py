@@ -15,6 +15,13 @@ The collate (:class:`PairCollate`) turns one :class:`~pcrcg.data.dataset.PairSam
 The lifting stage needs the level-0 points in the fragment's own frame (where its RGB-D views
 are posed): they travel in the batch as ``src_frame_points`` / ``tgt_frame_points`` together with
 the views, so the color features do not depend on the augmentation.
+
+The training order is :class:`EpochSampler`'s: epoch ``e``'s permutation comes from ``(seed, e)``
+and each pair's augmentation from ``(seed, e, rank, position)``, never from a global random state.
+The train loader saves its position in checkpoints (Lightning's ``state_dict`` interface for
+loaders), so a run resumed from a ``last.ckpt`` written mid-epoch sees the rest of that epoch in
+the same order with the same augmentations, bit for bit the uninterrupted run (with
+:class:`pcrcg.models.train.GlobalRngState` for the model's own draws).
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ from typing import Any, Callable, Mapping, Sequence
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from pcrcg.data.dataset import PairDataset, PairSample, View
 from pcrcg.errors import ConfigError, DataError
@@ -104,8 +111,88 @@ def augment_transforms(rng: np.random.Generator, cfg: AugmentConfig) -> tuple[np
     return np.eye(4), A
 
 
+def draw_seed(*key: int) -> int:
+    """A 31-bit seed from integers (``numpy.random.SeedSequence``): the same key, the same seed."""
+    return int(np.random.SeedSequence([int(k) for k in key]).generate_state(1)[0] >> 1)
+
+
+class EpochSampler(DistributedSampler):
+    """The training order: each epoch a permutation of the pairs drawn from ``seed + epoch``
+    (``DistributedSampler``'s rule, sharded over ``num_replicas`` ranks, padded to equal length; the
+    epoch is counted by iterations, see :meth:`set_epoch`),
+    each index yielded as ``(index, augmentation seed)`` with the seed from ``(seed, epoch, rank,
+    position)``. No global random state is read or advanced.
+
+    ``state_dict()`` is the fit's position, ``{"epoch", "done"}`` (batches done in that epoch, from
+    the ``position`` callable); after ``load_state_dict`` the next iteration is that epoch without its
+    first ``done`` items, or the next epoch when ``done`` reached ``epoch_batches`` (the fit's
+    batches per epoch, ``len(self)`` unless limited)."""
+
+    def __init__(self, dataset: Sequence[Any], seed: int = 0, num_replicas: int = 1, rank: int = 0,
+                 position: Callable[[], tuple[int, int, int]] | None = None):
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=True, seed=int(seed))
+        self.position = position  # () -> (epoch, batches done in it, batches per epoch) of the running fit
+        self._skip: tuple[int, int] | None = None  # (epoch, items to skip at its start)
+        self._next_epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Ignored: the sampler counts its epochs itself (one per iteration, from 0 or the resumed one).
+        Lightning 2.6 numbers the epoch one too many after resuming from a checkpoint of an epoch's end."""
+
+    def __iter__(self):  # type: ignore[override]
+        self.epoch, self._next_epoch = self._next_epoch, self._next_epoch + 1
+        order = list(super().__iter__())
+        skip = 0
+        if self._skip is not None:
+            if self._skip[0] == self.epoch:
+                skip = self._skip[1]
+            self._skip = None
+        for pos in range(skip, len(order)):
+            yield order[pos], draw_seed(self.seed, self.epoch, self.rank, pos)
+
+    def state_dict(self) -> dict[str, int]:
+        epoch, done, per_epoch = self.position() if self.position is not None else (self.epoch, 0, len(self))
+        # Lightning's epoch is the sampler's except right after resuming at an epoch's end; the sampler's
+        # own count is the truth for its order
+        epoch = self.epoch if self._next_epoch > 0 else epoch
+        return {"epoch": int(epoch), "done": int(done), "epoch_batches": int(per_epoch)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        epoch, done = int(state["epoch"]), int(state["done"])
+        if done >= int(state.get("epoch_batches", len(self))):
+            epoch, done = epoch + 1, 0
+        self._next_epoch = epoch
+        self._skip = (epoch, done)
+
+
+class _SeededPairs(Dataset):
+    """``dataset[(index, seed)] -> (dataset[index], seed)``: the sample with its augmentation seed."""
+
+    def __init__(self, pairs: Sequence[PairSample]):
+        self.pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, key: tuple[int, int]) -> tuple[PairSample, int]:
+        index, seed = key
+        return self.pairs[index], seed
+
+
+class ResumableLoader(DataLoader):
+    """A ``DataLoader`` whose :class:`EpochSampler` position goes into Lightning checkpoints and comes back."""
+
+    def state_dict(self) -> dict[str, int]:
+        return self.sampler.state_dict()
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.sampler.load_state_dict(state)
+
+
 class PairCollate:
-    """Callable collate: ``[PairSample] -> PairBatch`` (batch size 1, as Predator and the paper)."""
+    """Callable collate: ``[PairSample] -> PairBatch`` (batch size 1, as Predator and the paper).
+    A sample may come as ``(PairSample, seed)`` (:class:`EpochSampler`): its augmentation is drawn
+    from ``seed``; a bare sample draws its seed from torch's global generator."""
 
     def __init__(self, spec: PyramidSpec, overlap_radius: float, augment: AugmentConfig | None = None,
                  cache: PyramidCache | None = None, root: str = "", workers: int = 1,
@@ -132,7 +219,7 @@ class PairCollate:
     def __call__(self, samples: Sequence[PairSample]) -> PairBatch:
         if len(samples) != 1:
             raise ConfigError("trainer.batch_size", len(samples), "1 (pairs are stacked, as in Predator)")
-        s = samples[0]
+        s, seed = samples[0] if isinstance(samples[0], tuple) else (samples[0], None)
         src = self.pyramid(s.scene, s.j, s.src_points)
         tgt = self.pyramid(s.scene, s.i, s.tgt_points)
         T = np.asarray(s.transform, dtype=np.float64)
@@ -140,7 +227,9 @@ class PairCollate:
         a_src, a_tgt = np.eye(4), np.eye(4)
         src_aug, tgt_aug = src, tgt
         if self.augment is not None:
-            rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
+            if seed is None:
+                seed = int(torch.randint(0, 2**31 - 1, (1,)).item())
+            rng = np.random.default_rng(seed)
             a_src, a_tgt = augment_transforms(rng, self.augment)
             src_aug, tgt_aug = src.transformed(a_src), tgt.transformed(a_tgt)
             T = a_tgt @ T @ invert(a_src)
@@ -188,7 +277,7 @@ class PairDataModule(L.LightningDataModule):
                  num_workers: int = 0, batch_size: int = 1, cache_dir: str | Path | None = None,
                  cache_size: int = 1024, datasets: Mapping[str, Sequence[PairSample]] | None = None,
                  train_split: str = "train", val_split: str = "val",
-                 match_fn: Callable[[PairSample], Any] | None = None):
+                 match_fn: Callable[[PairSample], Any] | None = None, seed: int = 0):
         super().__init__()
         if batch_size != 1:
             raise ConfigError("trainer.batch_size", batch_size, "1 (pairs are stacked, as in Predator)")
@@ -208,6 +297,7 @@ class PairDataModule(L.LightningDataModule):
         self.train_split, self.val_split = train_split, val_split
         self.sets: dict[str, Sequence[PairSample]] = {}
         self.match_fn = match_fn
+        self.seed = int(seed)  # the training order and augmentations (EpochSampler)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -267,19 +357,35 @@ class PairDataModule(L.LightningDataModule):
         return PairCollate(self.spec(), self.overlap_radius, self.augment if train else None, self.cache, self.root,
                            match_fn=self.match_fn)
 
-    def _loader(self, split: str, train: bool) -> DataLoader:
-        return DataLoader(self.dataset(split), batch_size=1, shuffle=train, num_workers=self.num_workers,
-                          collate_fn=self.collate(train), persistent_workers=self.num_workers > 0)
+    def _loader(self, split: str) -> DataLoader:
+        """The pairs of a split in order, without augmentation."""
+        # an own generator: making an iterator draws the workers' base seed, not from torch's global one
+        return DataLoader(self.dataset(split), batch_size=1, shuffle=False, num_workers=self.num_workers,
+                          collate_fn=self.collate(False), persistent_workers=self.num_workers > 0,
+                          generator=torch.Generator().manual_seed(self.seed))
+
+    def _train_position(self) -> tuple[int, int, int]:
+        """(epoch, batches whose training step ran in it, batches per epoch) of the running fit."""
+        t = self.trainer
+        return (int(t.current_epoch), int(t.fit_loop.epoch_loop.batch_progress.current.processed),
+                int(t.num_training_batches))
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_split, True)
+        """The training pairs in :class:`EpochSampler` order (sharded by rank under DDP), resumable."""
+        t = self.trainer
+        world, rank = (int(t.world_size), int(t.global_rank)) if t is not None else (1, 0)
+        pairs = self.dataset(self.train_split)
+        sampler = EpochSampler(pairs, self.seed, world, rank, self._train_position if t is not None else None)
+        return ResumableLoader(_SeededPairs(pairs), batch_size=1, sampler=sampler, num_workers=self.num_workers,
+                               collate_fn=self.collate(True), persistent_workers=self.num_workers > 0,
+                               generator=torch.Generator().manual_seed(self.seed))
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_split, False)
+        return self._loader(self.val_split)
 
     def benchmark_dataloader(self, benchmark: str) -> DataLoader:
         """Pairs of a test benchmark (``3DMatch`` / ``3DLoMatch``) in order, no augmentation."""
-        return self._loader(benchmark, False)
+        return self._loader(benchmark)
 
     @classmethod
     def from_config(cls, data_root: str | Path | None, model_cfg: Mapping[str, Any], trainer_cfg: Mapping[str, Any],

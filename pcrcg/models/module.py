@@ -294,6 +294,14 @@ class PCRCGModule(L.LightningModule):
     def validation_step(self, batch: PairBatch, batch_idx: int) -> None:
         if batch.corr.shape[0] == 0:
             return None
+        # validation draws (the loss's sampled correspondences) from a generator of its own, seeded by the
+        # batch: the same numbers every epoch, and training's random sequence is not advanced by it (a
+        # resumed run, which may skip a validation, continues the uninterrupted run's draws)
+        with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
+            torch.manual_seed(batch_idx)
+            self._validate(batch)
+
+    def _validate(self, batch: PairBatch) -> None:
         out, coverage = self(batch)
         stats = self.compute_stats(batch, out)
         if "recall" in stats:

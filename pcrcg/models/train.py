@@ -6,8 +6,10 @@
   ``seed`` and, for color, ``projection``/``features``/``encoder2d``/``matcher2d``); ``checkpoint``
   is the best checkpoint (the last one when no validation ran). Checkpoints go to
   ``<out_dir>/checkpoints``: ``best.ckpt`` (lowest ``trainer.monitor``) and ``last.ckpt`` (every
-  ``trainer.checkpoint_every_n_steps`` steps, every epoch end, and on a crash or Ctrl-C); a run whose
-  ``last.ckpt`` exists resumes from it. Without a logger, curves go to
+  ``trainer.checkpoint_every_n_steps`` steps, every epoch end, and on a crash or Ctrl-C between steps); a
+  run whose ``last.ckpt`` exists resumes from it, bit for bit the uninterrupted run (:class:`LastCheckpoint`,
+  :class:`GlobalRngState`, :class:`~pcrcg.models.datamodule.EpochSampler`; metric
+  ``train/resumed_from_step``). Without a logger, curves go to
   ``<out_dir>/logs/version_<k>/metrics.csv`` (one version per start). This is the contract of
   :func:`pcrcg.pipeline.train_model`.
 * :func:`load_module` ``(checkpoint, device=None) -> PCRCGModule`` in eval mode.
@@ -29,6 +31,7 @@ from __future__ import annotations
 import copy
 import os
 import pickle
+import random
 import signal
 import sys
 import time
@@ -79,15 +82,25 @@ def _checkpoint_dir(out_dir: Path) -> Path:
 class LastCheckpoint(Callback):
     """Keeps ``last.ckpt`` current: every ``every_n_steps`` optimiser steps, at the end of every
     epoch (also when ``max_steps`` ends one early) and when training stops on an exception or Ctrl-C,
-    so an interrupted run resumes where it stopped. Written to a temporary file, then renamed."""
+    so an interrupted run resumes where it stopped. Written to a temporary file, then renamed.
+
+    Only states a run resumes from exactly are written: not between a batch and the validation due
+    after it (Lightning would resume past that validation), not from inside a training step. A run
+    resumed from ``last.ckpt`` is then bit for bit the uninterrupted one (with :class:`GlobalRngState`
+    and the data module's :class:`~pcrcg.models.datamodule.EpochSampler`)."""
 
     def __init__(self, path: Path, every_n_steps: int | None = None):
         self.path = Path(path)
         self.every = int(every_n_steps or 0)
         self._saved_step = -1
+        self._closed_epoch = -1
 
     def save(self, trainer: L.Trainer) -> None:
         if trainer.sanity_checking or trainer.global_step == 0 or trainer.global_step == self._saved_step:
+            return
+        if self.before_validation(trainer):
+            # Lightning resumes from such a state without the validation that was due (and so without its
+            # say in best.ckpt): keep the previous last.ckpt, a few steps back but exact
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name(f"{self.path.stem}.tmp-{os.getpid()}.ckpt")
@@ -98,15 +111,88 @@ class LastCheckpoint(Callback):
             os.replace(tmp, self.path)
         self._saved_step = trainer.global_step
 
+    def before_validation(self, trainer: L.Trainer) -> bool:
+        """Whether the last finished batch is one that a validation follows (the epoch's last, or every
+        ``val_check_batch``-th) and the epoch has not been closed since (validation then epoch end)."""
+        done = int(trainer.fit_loop.epoch_loop.batch_progress.current.processed)
+        if done == 0 or self._closed_epoch == trainer.current_epoch or not trainer.enable_validation:
+            return False
+        if done >= trainer.num_training_batches:
+            return True
+        every = trainer.val_check_batch
+        return isinstance(every, int) and every > 0 and done % every == 0
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # resumed: the checkpoint's step is saved already (Lightning may replay that epoch's end)
+        self._saved_step = trainer.global_step if trainer.global_step > 0 else -1
+
     def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
         if self.every and trainer.global_step % self.every == 0:
             self.save(trainer)
 
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._closed_epoch = -1
+
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._closed_epoch = trainer.current_epoch
         self.save(trainer)
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        fit = trainer.fit_loop.epoch_loop.batch_progress.current
+        if fit.started != fit.processed:
+            # inside a training step: the weights may be half-updated and the random state is mid-step
+            print(f"[train] {type(exception).__name__} during step {trainer.global_step + 1}: last.ckpt left at step "
+                  f"{max(self._saved_step, 0)} (a resumed run starts there)", file=sys.stderr, flush=True)
+            return
         self.save(trainer)
+
+
+class GlobalRngState(Callback):
+    """Puts the global random generators (torch, CUDA, numpy, Python) in checkpoints and, in a run
+    resumed from one, sets them back when training starts: the model's own draws (the loss's sampled
+    correspondences) continue the uninterrupted run's sequence. The data draw from none of them
+    (:class:`~pcrcg.models.datamodule.EpochSampler`). Stored as tensors and plain lists, so the
+    checkpoint still loads with ``weights_only=True``."""
+
+    def __init__(self) -> None:
+        self._pending: dict[str, Any] | None = None
+        self._snapshot: dict[str, Any] | None = None
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        # the state between two steps: what a checkpoint written later on a crash must hold
+        self._snapshot = self.current()
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._restore()
+        self._snapshot = self.current()
+
+    def state_dict(self) -> dict[str, Any]:
+        return self._snapshot if self._snapshot is not None else self.current()
+
+    @staticmethod
+    def current() -> dict[str, Any]:
+        """The global generators' states now."""
+        kind, keys, pos, has_gauss, cached = np.random.get_state()
+        version, internal, gauss = random.getstate()
+        return {"torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+                "numpy": [str(kind), [int(k) for k in keys], int(pos), int(has_gauss), float(cached)],
+                "python": [int(version), list(internal), gauss]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._pending = dict(state)
+
+    def _restore(self) -> None:
+        state, self._pending = self._pending, None
+        if not state:
+            return
+        torch.set_rng_state(state["torch"])
+        if state.get("cuda") and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(state["cuda"])
+        kind, keys, pos, has_gauss, cached = state["numpy"]
+        np.random.set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+        version, internal, gauss = state["python"]
+        random.setstate((version, tuple(internal), gauss))
 
 
 def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
@@ -120,7 +206,8 @@ def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Seque
     if logger is None:
         # one version folder per (re)start: a resumed run does not overwrite the curves so far
         logger = CSVLogger(str(out_dir), name="logs") if tcfg.get("csv_logger", True) else False
-    callbacks: list[Callback] = [best_cb, last_cb, *extra_callbacks]
+    # GlobalRngState before LastCheckpoint: its snapshot of a step's end is taken before that step's save
+    callbacks: list[Callback] = [best_cb, GlobalRngState(), last_cb, *extra_callbacks]
     if logger:
         from lightning.pytorch.callbacks import LearningRateMonitor
 
@@ -224,7 +311,8 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
     match_fn = lifter.match if lifter is not None and getattr(lifter.cfg, "projection", "") == "explicit" else None
     if datamodule is None:
         root = data_root if data_root is not None else _get(cfg, "data.root")
-        datamodule = PairDataModule.from_config(root, mcfg, tcfg, n_views=n_views, match_fn=match_fn)
+        datamodule = PairDataModule.from_config(root, mcfg, tcfg, n_views=n_views, match_fn=match_fn,
+                                                seed=int(_get(cfg, "seed", 0) or 0))
     datamodule.setup("fit")
     mcfg["neighbor_limits"] = list(datamodule.limits or ())
     module = PCRCGModule(mcfg, optim=tcfg.get("optim"), lifting=lifting, lifter=lifter)
@@ -233,12 +321,14 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
     external_logger = logger not in (None, False)
     trainer, last_cb, best_cb = build_trainer(tcfg, out, logger, [hist, *callbacks])
     last = _checkpoint_dir(out) / "last.ckpt"
-    ckpt = str(last) if tcfg.get("resume", True) and last.is_file() and _resumable(last, module) else None
-    _fit(trainer, module, datamodule, ckpt)
+    resumed_at = _resumable(last, module) if tcfg.get("resume", True) and last.is_file() else None
+    _fit(trainer, module, datamodule, str(last) if resumed_at is not None else None)
     best = best_cb.best_model_path
     metrics = {"train/global_step": float(trainer.global_step), "train/epochs": float(trainer.current_epoch),
                "train/seconds": time.perf_counter() - t0, "train/skipped_pairs": float(module.skipped_pairs),
-               "train/in_dim": float(module.in_dim)}
+               "train/in_dim": float(module.in_dim),
+               # provenance: resumed from last.ckpt at this step (0: not); bit for bit the uninterrupted run
+               "train/resumed_from_step": float(resumed_at or 0)}
     if best_cb.best_model_score is not None:
         metrics[f"best/{best_cb.monitor}"] = float(best_cb.best_model_score)
     return {"checkpoint": best if best and Path(best).is_file() else str(last), "last_checkpoint": str(last),
@@ -279,21 +369,21 @@ def _fit(trainer: L.Trainer, module: PCRCGModule, datamodule: PairDataModule, ck
                 pass
 
 
-def _resumable(last: Path, module: PCRCGModule) -> bool:
-    """Whether ``last.ckpt`` can be resumed from; a file that cannot (corrupt, crafted, another model)
-    is moved aside with a one-line warning, and training starts afresh."""
+def _resumable(last: Path, module: PCRCGModule) -> int | None:
+    """The step ``last.ckpt`` resumes from, or None when it cannot be resumed from: such a file (corrupt,
+    crafted, another model) is moved aside with a one-line warning, and training starts afresh."""
     try:
         ck = read_checkpoint(last)
         if "optimizer_states" not in ck or "global_step" not in ck:
             raise DataError(last, "holds no training state (optimizer_states, global_step): not a last.ckpt")
         _check_state_dict(module, ck["state_dict"], last)
-        return True
+        return int(ck["global_step"])
     except DataError as e:
         aside = last.with_name(f"{last.name}.bad-{time.strftime('%Y%m%d-%H%M%S')}")
         os.replace(last, aside)
         print(f"[train] warning: cannot resume: {one_line(e)}; moved it to {aside.name} and starting afresh",
               file=sys.stderr, flush=True)
-        return False
+        return None
 
 
 # --------------------------------------------------------------------------- checkpoints

@@ -19,6 +19,8 @@ pyramid is built once in its own frame (and cached, :class:`PyramidCache`), then
 from __future__ import annotations
 
 import hashlib
+import os
+import secrets
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -231,7 +233,7 @@ class PyramidCache:
         for name in ("points", "neighbors", "pools", "upsamples"):
             for i, a in enumerate(getattr(pyr, name)):
                 arrays[f"{name}_{i}"] = a
-        tmp = path.with_suffix(f".tmp-{np.random.randint(1 << 30)}.npz")
+        tmp = path.with_suffix(f".tmp-{os.getpid()}-{secrets.token_hex(4)}.npz")  # no global random state drawn
         np.savez(tmp, key=np.array(repr(key)), **arrays)
         tmp.replace(path)
 
