@@ -193,6 +193,32 @@ def test_a_resumed_training_is_bit_for_bit_the_uninterrupted_one(tmp_path, toy_r
 
 
 @pytest.mark.slow
+def test_a_resumed_pcr_cg_training_is_bit_for_bit_the_uninterrupted_one(tmp_path, tiny_root):
+    """The same with color: deep features of a 2D encoder trained with the 3D network (its batch norms in
+    training mode), explicit projection on SIFT matches, the tiny profile's data and 6 steps over 2 epochs."""
+    from omegaconf import OmegaConf
+
+    from conftest import compose
+
+    cfg = compose("run", ["profile=tiny", f"data.root={tiny_root}", "features=deep", "projection=explicit",
+                          "encoder2d=scratch", "matcher2d=sift", "trainer.max_steps=6", "trainer.max_epochs=2",
+                          "trainer.limit_train_batches=3", "trainer.limit_val_batches=1",
+                          "trainer.checkpoint_every_n_steps=100", "trainer.progress_bar=false", "seed=2"])
+    OmegaConf.set_struct(cfg, False)
+    train(cfg, out_dir=tmp_path / "whole", logger=False)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg, out_dir=tmp_path / "cut", logger=False, callbacks=[CountSteps(fail_at=2)])
+    rest = CountSteps()
+    res = train(cfg, out_dir=tmp_path / "cut", logger=False, callbacks=[rest])
+    assert rest.steps == 4 and res["metrics"]["train/resumed_from_step"] == 2
+    a, b = (torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["state_dict"]
+            for d in (tmp_path / "whole", tmp_path / "cut"))
+    assert any(k.startswith("lifter.") for k in a)  # the 2D encoder is in it
+    differ = [k for k in a if not torch.equal(a[k], b[k])]
+    assert not differ, f"{len(differ)} of {len(a)} tensors differ, e.g. {differ[:3]}"
+
+
+@pytest.mark.slow
 def test_loader_processes_change_no_result(tmp_path, toy_root3):
     """The augmentations come from the sampler, not from the loader processes: 2 workers train the same weights."""
     states = []
