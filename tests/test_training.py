@@ -162,17 +162,21 @@ def _final_state(out_dir: Path) -> dict:
     return ck
 
 
-@pytest.mark.parametrize("crash_at, before, every, resumed_at", [(2, False, 100, 2), (3, False, 1, 2), (3, True, 100, 3)],
-                         ids=["mid-epoch", "before-validation", "epoch-end"])
+@pytest.mark.parametrize("crash_at, before, every, resumed_at, workers", [
+    (2, False, 100, 2, 0), (3, False, 1, 2, 0), (3, True, 100, 3, 0),
+    pytest.param(3, True, 100, 3, 2, marks=pytest.mark.slow)],
+    ids=["mid-epoch", "before-validation", "epoch-end", "epoch-end-2-loader-processes"])
 def test_a_resumed_training_is_bit_for_bit_the_uninterrupted_one(tmp_path, toy_root3, crash_at, before, every,
-                                                                  resumed_at):
+                                                                  resumed_at, workers):
     """3 pairs an epoch, 7 steps (epochs 0, 1 and one step of 2), augmentation on. Crashed after step 2 (mid
     epoch: saved there), after step 3 (the epoch's last batch, its validation due: nothing is saved there, the
     run resumes from step 2's periodic save) or as step 4 starts (resumes from epoch 0's end), the resumed
-    run's weights, optimiser state and validation curve are the uninterrupted run's."""
+    run's weights, optimiser state and validation curve are the uninterrupted run's. With loader processes
+    (the interrupted run's only), whose iterators start drawing indices as soon as they exist."""
     cfg = {"model": MODEL, "trainer": trainer_cfg(max_steps=7, max_epochs=10, checkpoint_every_n_steps=every),
            "seed": 3, "data": {"root": str(toy_root3)}}
     train(cfg, out_dir=tmp_path / "whole")
+    cfg["trainer"]["num_workers"] = workers
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(cfg, out_dir=tmp_path / "cut", callbacks=[CountSteps(fail_at=crash_at, before=before)])
     ck = torch.load(tmp_path / "cut" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)

@@ -118,50 +118,48 @@ def draw_seed(*key: int) -> int:
 
 class EpochSampler(DistributedSampler):
     """The training order: each epoch a permutation of the pairs drawn from ``seed + epoch``
-    (``DistributedSampler``'s rule, sharded over ``num_replicas`` ranks, padded to equal length; the
-    epoch is counted by iterations, see :meth:`set_epoch`),
+    (``DistributedSampler``'s rule, sharded over ``num_replicas`` ranks, padded to equal length),
     each index yielded as ``(index, augmentation seed)`` with the seed from ``(seed, epoch, rank,
     position)``. No global random state is read or advanced.
 
-    ``state_dict()`` is the fit's position, ``{"epoch", "done"}`` (batches done in that epoch, from
-    the ``position`` callable); after ``load_state_dict`` the next iteration is that epoch without its
-    first ``done`` items, or the next epoch when ``done`` reached ``epoch_batches`` (the fit's
-    batches per epoch, ``len(self)`` unless limited)."""
+    The epoch of an iteration is the running fit's (``position``: ``() -> (epoch, batches done in it,
+    batches per epoch)``, read when the iteration starts), or without one a count of iterations.
+    ``state_dict()`` is the fit's position, ``{"epoch", "done", "epoch_batches"}``; after
+    ``load_state_dict`` an iteration of that epoch leaves out its first ``done`` items (none when
+    ``done`` reached ``epoch_batches``: the fit resumes at the next epoch)."""
 
     def __init__(self, dataset: Sequence[Any], seed: int = 0, num_replicas: int = 1, rank: int = 0,
                  position: Callable[[], tuple[int, int, int]] | None = None):
         super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=True, seed=int(seed))
-        self.position = position  # () -> (epoch, batches done in it, batches per epoch) of the running fit
-        self._skip: tuple[int, int] | None = None  # (epoch, items to skip at its start)
-        self._next_epoch = 0
+        self.position = position
+        self._skip: tuple[int, int] | None = None  # (epoch, items its iterations leave out)
+        self._count = 0  # iterations started, the epoch when there is no fit to ask
 
     def set_epoch(self, epoch: int) -> None:
-        """Ignored: the sampler counts its epochs itself (one per iteration, from 0 or the resumed one).
-        Lightning 2.6 numbers the epoch one too many after resuming from a checkpoint of an epoch's end."""
+        """Ignored: Lightning 2.6 passes one too many after resuming from a checkpoint of an epoch's end
+        (``epoch_progress.current.processed``); the fit's ``current_epoch`` is right."""
 
     def __iter__(self):  # type: ignore[override]
-        self.epoch, self._next_epoch = self._next_epoch, self._next_epoch + 1
-        order = list(super().__iter__())
-        skip = 0
-        if self._skip is not None:
-            if self._skip[0] == self.epoch:
-                skip = self._skip[1]
+        # the epoch is read here, when the iteration starts: a loader with workers starts one as soon as
+        # its iterator exists, and Lightning may make an iterator it never uses (resuming at an epoch's end)
+        self.epoch = int(self.position()[0]) if self.position is not None else self._count
+        self._count = self.epoch + 1
+        if self._skip is not None and self._skip[0] < self.epoch:
             self._skip = None
+        skip = self._skip[1] if self._skip is not None and self._skip[0] == self.epoch else 0
+        order = list(super().__iter__())
         for pos in range(skip, len(order)):
             yield order[pos], draw_seed(self.seed, self.epoch, self.rank, pos)
 
     def state_dict(self) -> dict[str, int]:
         epoch, done, per_epoch = self.position() if self.position is not None else (self.epoch, 0, len(self))
-        # Lightning's epoch is the sampler's except right after resuming at an epoch's end; the sampler's
-        # own count is the truth for its order
-        epoch = self.epoch if self._next_epoch > 0 else epoch
-        return {"epoch": int(epoch), "done": int(done), "epoch_batches": int(per_epoch)}
+        return {"epoch": int(epoch), "done": int(done), "epoch_batches": int(per_epoch if per_epoch >= 0 else len(self))}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         epoch, done = int(state["epoch"]), int(state["done"])
         if done >= int(state.get("epoch_batches", len(self))):
             epoch, done = epoch + 1, 0
-        self._next_epoch = epoch
+        self._count = epoch
         self._skip = (epoch, done)
 
 
@@ -365,10 +363,12 @@ class PairDataModule(L.LightningDataModule):
                           generator=torch.Generator().manual_seed(self.seed))
 
     def _train_position(self) -> tuple[int, int, int]:
-        """(epoch, batches whose training step ran in it, batches per epoch) of the running fit."""
+        """(epoch, batches whose training step ran in it, batches per epoch or -1 before it is known) of the
+        running fit."""
         t = self.trainer
+        per_epoch = t.num_training_batches  # inf until the fit has sized its loader
         return (int(t.current_epoch), int(t.fit_loop.epoch_loop.batch_progress.current.processed),
-                int(t.num_training_batches))
+                int(per_epoch) if per_epoch != float("inf") else -1)
 
     def train_dataloader(self) -> DataLoader:
         """The training pairs in :class:`EpochSampler` order (sharded by rank under DDP), resumable."""
