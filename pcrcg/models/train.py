@@ -139,12 +139,16 @@ class LastCheckpoint(Callback):
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         fit = trainer.fit_loop.epoch_loop.batch_progress.current
-        if fit.started != fit.processed:
-            # inside a training step: the weights may be half-updated and the random state is mid-step
-            print(f"[train] {type(exception).__name__} during step {trainer.global_step + 1}: last.ckpt left at step "
-                  f"{max(self._saved_step, 0)} (a resumed run starts there)", file=sys.stderr, flush=True)
+        # inside a training step the weights may be half-updated and the random state is mid-step
+        where = (f"during step {trainer.global_step + 1}" if fit.started != fit.processed
+                 else f"after step {trainer.global_step}, before its validation" if self.before_validation(trainer)
+                 else None)
+        if where is None:
+            self.save(trainer)
             return
-        self.save(trainer)
+        kept = f"left at step {self._saved_step}" if self._saved_step > 0 else "not written yet"
+        print(f"[train] {type(exception).__name__} {where}: last.ckpt {kept} (a relaunch resumes from there, "
+              "exactly)", file=sys.stderr, flush=True)
 
 
 class GlobalRngState(Callback):
