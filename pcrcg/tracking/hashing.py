@@ -21,7 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 # (profile.pretrain2d: the 2D pretraining's own sizes; a run reads only the weights file it is given;
 # data.workers, trainer.num_threads (and the profile's value it follows), registration.ransac.threads: how many
 # processes / CPU threads do the work; encoder2d.memo_mb: how much memory reuses 2D maps. trainer.num_workers
-# stays: the loader processes draw the augmentations)
+# stays, so that hashes match older stores', though since EpochSampler it changes no result: code before it drew
+# the augmentations in the loader processes)
 HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d",
                                  "data.workers", "trainer.num_threads", "profile.train.num_threads",
                                  "registration.ransac.threads", "encoder2d.memo_mb")
