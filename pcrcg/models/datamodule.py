@@ -153,7 +153,8 @@ class EpochSampler(DistributedSampler):
 
     def state_dict(self) -> dict[str, int]:
         epoch, done, per_epoch = self.position() if self.position is not None else (self.epoch, 0, len(self))
-        return {"epoch": int(epoch), "done": int(done), "epoch_batches": int(per_epoch if per_epoch >= 0 else len(self))}
+        per_epoch = per_epoch if per_epoch >= 0 else len(self)
+        return {"epoch": int(epoch), "done": int(done), "epoch_batches": int(per_epoch)}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         epoch, done = int(state["epoch"]), int(state["done"])
