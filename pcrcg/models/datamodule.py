@@ -356,12 +356,14 @@ class PairDataModule(L.LightningDataModule):
         return PairCollate(self.spec(), self.overlap_radius, self.augment if train else None, self.cache, self.root,
                            match_fn=self.match_fn)
 
+    def _make_loader(self, cls: type[DataLoader], dataset: Any, train: bool, **kw: Any) -> DataLoader:
+        # an own generator: making an iterator draws the workers' base seed, not from torch's global one
+        return cls(dataset, batch_size=1, num_workers=self.num_workers, collate_fn=self.collate(train),
+                   persistent_workers=self.num_workers > 0, generator=torch.Generator().manual_seed(self.seed), **kw)
+
     def _loader(self, split: str) -> DataLoader:
         """The pairs of a split in order, without augmentation."""
-        # an own generator: making an iterator draws the workers' base seed, not from torch's global one
-        return DataLoader(self.dataset(split), batch_size=1, shuffle=False, num_workers=self.num_workers,
-                          collate_fn=self.collate(False), persistent_workers=self.num_workers > 0,
-                          generator=torch.Generator().manual_seed(self.seed))
+        return self._make_loader(DataLoader, self.dataset(split), False, shuffle=False)
 
     def _train_position(self) -> tuple[int, int, int]:
         """(epoch, batches whose training step ran in it, batches per epoch or -1 before it is known) of the
@@ -377,9 +379,7 @@ class PairDataModule(L.LightningDataModule):
         world, rank = (int(t.world_size), int(t.global_rank)) if t is not None else (1, 0)
         pairs = self.dataset(self.train_split)
         sampler = EpochSampler(pairs, self.seed, world, rank, self._train_position if t is not None else None)
-        return ResumableLoader(_SeededPairs(pairs), batch_size=1, sampler=sampler, num_workers=self.num_workers,
-                               collate_fn=self.collate(True), persistent_workers=self.num_workers > 0,
-                               generator=torch.Generator().manual_seed(self.seed))
+        return self._make_loader(ResumableLoader, _SeededPairs(pairs), True, sampler=sampler)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.val_split)

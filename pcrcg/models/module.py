@@ -295,8 +295,8 @@ class PCRCGModule(L.LightningModule):
         if batch.corr.shape[0] == 0:
             return None
         # validation draws (the loss's sampled correspondences) from a generator of its own, seeded by the
-        # batch: the same numbers every epoch, and training's random sequence is not advanced by it (a
-        # resumed run, which may skip a validation, continues the uninterrupted run's draws)
+        # batch: the same numbers every epoch, and training's random sequence is not advanced by it (an epoch's
+        # last.ckpt holds the random state of its last step's end, taken before this validation ran)
         with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
             torch.manual_seed(batch_idx)
             self._validate(batch)

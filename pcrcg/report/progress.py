@@ -156,8 +156,9 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
     states: list[JobState] = []
     first: dict[tuple[str, str], int] = {}
     for exp, ov, seed, cfg in planned:
-        h = run_hash(to_plain(cfg))
-        hashes = {h, run_hash(to_plain(cfg), weights_by_bytes=True)}
+        plain = to_plain(cfg)
+        h = run_hash(plain)
+        hashes = {h, run_hash(plain, weights_by_bytes=True)}
         overrides = tuple(o for o in ov if not o.startswith(("profile=", "seed=")))
         name = str(cfg.experiment_name)
         key = (name, h)  # a run skips only runs of its own experiment
