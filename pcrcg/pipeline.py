@@ -63,6 +63,34 @@ class StageUnavailable(PcrcgError, RuntimeError):
 # --------------------------------------------------------------------------- contracts
 
 
+def cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process, all its threads, plus those of its child processes
+    that have ended (Lightning's loader processes once an epoch's loader is done)."""
+    import resource
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+class Clock:
+    """Wall and CPU seconds since it was made. A stage's CPU seconds are what it costs on a core of
+    its own: on a shared machine (a sweep's lanes beside each other) its wall time is that plus the
+    time it waited for a core."""
+
+    def __init__(self) -> None:
+        self._wall, self._cpu = time.perf_counter(), cpu_seconds()
+
+    def wall(self) -> float:
+        return time.perf_counter() - self._wall
+
+    def cpu(self) -> float:
+        return cpu_seconds() - self._cpu
+
+    def metrics(self, stage: str) -> dict[str, float]:
+        """``{"time/<stage>_s": wall, "time/<stage>_cpu_s": cpu}``."""
+        return {f"time/{stage}_s": self.wall(), f"time/{stage}_cpu_s": self.cpu()}
+
+
 @dataclass
 class TrainOutput:
     """What training leaves: the checkpoint file and curves ``{name: [v0, v1, ...]}`` (step = index)
@@ -389,7 +417,7 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
     Steps: check the config and make the 2D weights it names, hash it, open the store (closing this
     config's stale runs), skip a config that already finished, run the stages in a tracked run
     (:func:`_execute`), then say where the results are (:func:`_conclude`)."""
-    t0 = time.perf_counter()
+    clock = Clock()
     data = to_plain(cfg)  # resolved once: interpolation is the slow part of OmegaConf
     validate_run_config(cfg, job.choices, job.search_dirs, data=data)
     _make_2d_weights(cfg, job, data)  # before the hash: it holds the weights file's digest
@@ -405,7 +433,7 @@ def run_job(cfg: DictConfig, job: JobInfo) -> RunOutcome:
 
     ctx = RunContext(cfg=cfg, job=job, out_dir=job.output_dir, device=resolve_device(OmegaConf.select(cfg, "runtime.device")),
                      tracker=tracker)
-    outcome = _execute(ctx, data, h, name, t0)
+    outcome = _execute(ctx, data, h, name, clock)
     if outcome.status == "finished":
         _conclude(cfg, job, outcome)
     return outcome
@@ -450,7 +478,7 @@ def _skip_if_finished(cfg: DictConfig, job: JobInfo, tracker: "RunTracker", h: s
     return None
 
 
-def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, t0: float) -> RunOutcome:
+def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, clock: Clock) -> RunOutcome:
     """Start the tracked run, run the stages (:func:`_work`) and return the outcome ``finished``.
 
     Ctrl-C / SIGTERM: the run is closed as KILLED and the interruption re-raised. Any other error: the
@@ -471,17 +499,17 @@ def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, t0: fl
                 run_id = ctx.run_id = tracker.start(name, _tags(cfg, data, h, job))
                 tracker.log_params(run_id, {**flatten(data), **_digest_params(data)})
                 _log_config_files(tracker, run_id, data, job)
-            for stage in _work(ctx, data, h, t0):
+            for stage in _work(ctx, data, h, clock):
                 pass
         metrics = ctx.metrics
         return RunOutcome("finished", h, name, run_id, uri, metrics,
-                          output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
+                          output_dir=str(job.output_dir), seconds=clock.wall())
     except KeyboardInterrupt as e:  # Ctrl-C (also inside Lightning's fit: see models.train), SIGTERM
         reason = f"{interrupt_reason(e)} during {stage}"
         if tracker is not None and run_id is not None:
             tracker.kill(run_id, reason)
         outcome = RunOutcome("killed", h, name, run_id, uri, error=reason,
-                             output_dir=str(job.output_dir), seconds=time.perf_counter() - t0)
+                             output_dir=str(job.output_dir), seconds=clock.wall())
         write_status(job.output_dir, outcome)
         print(f"[run] killed {name!r}: {reason} (run {run_id or '-'} closed as KILLED)", file=sys.stderr)
         raise
@@ -491,7 +519,7 @@ def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, t0: fl
             tracker.fail(run_id, e, not_run=not_run)
         outcome = RunOutcome("not_run" if not_run else "failed", h, name, run_id, uri,
                              error=f"{type(e).__name__}: {one_line(e)}", output_dir=str(job.output_dir),
-                             seconds=time.perf_counter() - t0)
+                             seconds=clock.wall())
         write_status(job.output_dir, outcome)
         print(f"[run] {outcome.status} {name!r} during {stage}: {outcome.error}", file=sys.stderr)
         if not job.multirun or isinstance(e, SystemExit):
@@ -512,36 +540,37 @@ def _conclude(cfg: DictConfig, job: JobInfo, outcome: RunOutcome) -> None:
                                 str(OmegaConf.select(cfg, "runtime.report_dir", default="reports")), job.base_dir, "[run]")
 
 
-def _work(ctx: RunContext, data: Mapping[str, Any], h: str, t0: float):
+def _work(ctx: RunContext, data: Mapping[str, Any], h: str, clock: Clock):
     """The run's stages in order; yields the name of each stage as it starts (for messages) and
-    leaves the metrics in ``ctx.metrics``. The run is finished in the store at the end."""
+    leaves the metrics in ``ctx.metrics``. The run is finished in the store at the end. Each stage's
+    wall and CPU seconds are logged as ``time/<stage>_s`` and ``time/<stage>_cpu_s`` (:class:`Clock`)."""
     cfg, tracker, run_id = ctx.cfg, ctx.tracker, ctx.run_id
     timings: dict[str, float] = {}
     yield "checks"
     preflight(data)
     yield "prepare"
-    t = time.perf_counter()
+    t = Clock()
     ctx.data_root = Path(_stage(cfg.stages.prepare)(ctx))
-    timings["time/prepare_s"] = time.perf_counter() - t
+    timings.update(t.metrics("prepare"))
     yield "input checks"
-    t = time.perf_counter()
+    t = Clock()
     _check_inputs(ctx)
-    timings["time/check_inputs_s"] = time.perf_counter() - t
+    timings.update(t.metrics("check_inputs"))
     if needs_training(cfg):
         yield "train"
-        t = time.perf_counter()
+        t = Clock()
         trained = _stage(cfg.stages.train)(ctx)
-        timings["time/train_s"] = time.perf_counter() - t
+        timings.update(t.metrics("train"))
         ctx.checkpoint = trained.checkpoint
         _log_training(ctx, trained)
     yield "evaluate"
-    t = time.perf_counter()
+    t = Clock()
     result: EvalOutput = _stage(cfg.stages.evaluate)(ctx)
-    timings["time/evaluate_s"] = time.perf_counter() - t
+    timings.update(t.metrics("evaluate"))
     yield "logging"
     metrics = {k: float(v) for k, v in result.metrics.items() if v is not None}
     _write_outputs(ctx, metrics, result, h)
-    timings["time/total_s"] = time.perf_counter() - t0
+    timings.update(clock.metrics("total"))
     if tracker is not None and run_id is not None:
         tracker.log_metrics(run_id, {**metrics, **timings})
         tracker.log_params(run_id, flatten(result.protocol, "protocol."))

@@ -44,6 +44,8 @@ def test_a_finished_run_is_found_by_its_config_and_code_and_the_rest_is_estimate
     text = render(states, 2, run["code"], uri)
     assert "1 finished, 0 running, 0 stale, 0 older code, 2 to run, 1 same as" in text
     assert "Left: 2 runs" in text and "(1 without an estimate)" in text
+    assert run["cpu"] is not None and states[0].cpu_seconds == pytest.approx(run["cpu"])
+    assert "| CPU time |" in text and "CPU time: " in text and "(1 of the 1 finished runs logged it" in text
     assert "real scene" not in text.split("|---")[-1]  # no real data named: no line about it
     # the findings read sift_dlt on the real scene: the finished run has not been evaluated there yet
     real = job_states(planned, runs, run["code"], real="real-redkitchen", real_experiments=["sift_dlt"])

@@ -121,6 +121,9 @@ def test_finished_runs_carry_params_tags_metrics_and_artifacts(sweep):
             assert metrics[f"{b}/rre"] == 2.0 and metrics[f"{b}/rte"] == 0.07
         assert metrics["color_coverage"] == pytest.approx(0.6)
         assert metrics["time/total_s"] > 0
+        for stage in ("prepare", "check_inputs", "train", "evaluate", "total"):
+            assert metrics[f"time/{stage}_cpu_s"] >= 0, stage
+        assert metrics["time/total_cpu_s"] >= metrics["time/train_cpu_s"] + metrics["time/evaluate_cpu_s"] - 1e-6
         client = __import__("mlflow").tracking.MlflowClient(sweep["uri"])
         curve = client.get_metric_history(r.info.run_id, "train/loss")
         assert [m.value for m in sorted(curve, key=lambda m: m.step)] == [1.0, 0.5, 0.25]
@@ -292,3 +295,27 @@ def test_a_long_table_title_is_wrapped_to_the_figure_width():
     assert lines > 1 and text.replace("\n", " ") == title
     assert max(len(line) for line in text.splitlines()) <= int(3.5 * 72 / (0.55 * 9))
     assert _wrap("Table 1", 10.0, 9) == ("Table 1", 1)
+
+
+def test_clock_counts_cpu_seconds_not_waiting_and_ended_children():
+    """A stage's CPU seconds: its own work and its ended child processes' (loader workers), not the time
+    it waited (a sleep here; a core taken by another lane in a sweep)."""
+    import sys
+    import time
+
+    from pcrcg.pipeline import Clock
+
+    clock = Clock()
+    time.sleep(0.3)
+    assert clock.wall() >= 0.3 and clock.cpu() < 0.1
+    clock = Clock()
+    busy = time.process_time()
+    while time.process_time() - busy < 0.2:
+        pass
+    assert clock.cpu() >= 0.2
+    clock = Clock()
+    subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\n"
+                    "while time.process_time() - t < 0.3: pass"], check=True)
+    spent = clock.metrics("stage")
+    assert set(spent) == {"time/stage_s", "time/stage_cpu_s"}
+    assert spent["time/stage_cpu_s"] >= 0.3 and spent["time/stage_s"] >= 0.3

@@ -21,6 +21,8 @@ does), hashes it as a run does (:func:`pcrcg.pipeline.run_hash`) and looks the h
 * ``same as #k``: the config of an earlier run of the list in the same experiment (a seedless method, e.g. ICP
   from the identity or FPFH: the sweep runs it once and skips it at the other seeds).
 
+A finished run's CPU time (``time/total_cpu_s``, logged since 2026-12-05: :class:`pcrcg.pipeline.Clock`) is what it
+cost on a core of its own; its wall time adds the time it waited for a core beside the other lanes.
 The time left is the sum, over the jobs not finished, of the median wall time (``time/total_s``) of the finished
 runs of the same job at other seeds (else of the experiment's), divided by ``--lanes``; a job with neither is
 counted apart. Read-only: the store is opened, never written.
@@ -56,6 +58,7 @@ class JobState:
     run_id: str | None = None
     store_experiment: str = ""  # the MLflow experiment its runs go to (the config's experiment_name)
     real: str = ""  # a finished run the findings read on the real scene: "yes" when it has its metrics, else "no"
+    cpu_seconds: float | None = None  # a finished run's CPU seconds (``time/total_cpu_s``; None: its code did not log it)
 
     @property
     def label(self) -> str:
@@ -120,7 +123,7 @@ def check_store(uri: str) -> None:
 
 
 def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str, Any]]]:
-    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "name", "stale", "data"}``
+    """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "cpu", "name", "stale", "data"}``
     (read-only; ``stale``: RUNNING, and its process on this host is gone; ``data``: the prefixes of its metrics
     ``<name>/...``, e.g. the real scene's, that ``pcrcg.evaluate mode=tracked name=<name>`` logged)."""
     from pcrcg.tracking.store import client
@@ -134,6 +137,7 @@ def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str
         runs = c.search_runs([exp.experiment_id], max_results=50000) if exp is not None else []
         out[name] = [{"id": r.info.run_id, "hash": r.data.tags.get(TAG_HASH), "code": r.data.tags.get(TAG_CODE),
                       "status": r.info.status, "seconds": r.data.metrics.get("time/total_s"),
+                      "cpu": r.data.metrics.get("time/total_cpu_s"),
                       "name": r.info.run_name or "", "stale": is_stale(r.info.status, r.data.tags),
                       "data": {k.split("/", 1)[0] for k in r.data.metrics if "/" in k}}
                      for r in runs]
@@ -180,7 +184,7 @@ def job_states(planned: Sequence[tuple[str, list[str], int, Any]], runs: Mapping
             state, r = "to run", None
         seen = ("yes" if real in r.get("data", ()) else "no") if r and exp in on_real else ""
         states.append(JobState(exp, overrides, seed, h, state, r["seconds"] if r else None, r["id"] if r else None,
-                               store_experiment=name, real=seen))
+                               store_experiment=name, real=seen, cpu_seconds=r.get("cpu") if r else None))
     merged = {k: [*runs.get(k, []), *(reference or {}).get(k, [])] for k in {*runs, *(reference or {})}}
     _estimate(states, merged)
     return states
@@ -211,20 +215,29 @@ def _hms(seconds: float | None) -> str:
     return f"{m // 60} h {m % 60:02d} min" if m >= 60 else f"{m} min"
 
 
+def _cpu_total(states: Sequence[JobState]) -> str:
+    """`` CPU time: ...`` of the finished runs that logged it (what they cost on cores of their own), else ''."""
+    done = [s for s in states if s.state == "finished"]
+    cpu = [s.cpu_seconds for s in done if s.cpu_seconds is not None]
+    return (f" CPU time: {_hms(sum(cpu))} in all ({len(cpu)} of the {len(done)} finished runs logged it: "
+            "code from 2026-12-05 on)") if cpu else ""
+
+
 def render(states: Sequence[JobState], lanes: int, code: str, uri: str) -> str:
     """The progress table (one line per run, in the sweep's order) and the totals."""
     lines = [f"Store {uri}, code version {code}: the findings sweep, {len(states)} runs", "",
-             "| # | seed | job | state | wall time | real scene |", "|---:|---:|---|---|---:|---|"]
+             "| # | seed | job | state | wall time | CPU time | real scene |", "|---:|---:|---|---|---:|---:|---|"]
     for k, s in enumerate(states, 1):
         t = (_hms(s.seconds) if s.state == "finished" else "–" if s.state.startswith("same as")
              else f"~{_hms(s.seconds)}" if s.seconds else "?")
-        lines.append(f"| {k} | {s.seed} | {s.label} | {s.state} | {t} | {s.real or '–'} |")
+        cpu = _hms(s.cpu_seconds) if s.state == "finished" and s.cpu_seconds is not None else "–"
+        lines.append(f"| {k} | {s.seed} | {s.label} | {s.state} | {t} | {cpu} | {s.real or '–'} |")
     counts = {st: sum(s.state.startswith(st) for s in states) for st in STATES}
     left = [s for s in states if s.state not in ("finished",) and not s.state.startswith("same as")]
     known = [s.seconds for s in left if s.seconds is not None]
     done_s = sum(s.seconds or 0.0 for s in states if s.state == "finished")
     lines += ["", ", ".join(f"{n} {st}" for st, n in counts.items()) + ".",
-              f"Finished runs' wall time: {_hms(done_s)} in all.",
+              f"Finished runs' wall time: {_hms(done_s)} in all." + _cpu_total(states),
               f"Left: {len(left)} runs, ~{_hms(sum(known))} of run time ({len(left) - len(known)} without an "
               f"estimate), ~{_hms(sum(known) / max(lanes, 1))} of wall time on {lanes} lane(s)."]
     missing = [k for k, s in enumerate(states, 1) if s.real == "no"]
