@@ -609,7 +609,8 @@ def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
 
 
 def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
-    """Check resources the run needs: weights files named in the config exist.
+    """Check resources the run needs: weights files named in the config exist and read as torch files
+    (``torch.load(weights_only=True)``: :func:`pcrcg.safeload.load_tensors`; a DataError naming the file otherwise).
 
     A pretrained 2D encoder (``encoder2d`` imagenet/pri3d, used when color is on) needs its
     weights file; any configured ``weights``/``checkpoint`` path must exist; ``features=disk`` and an
@@ -646,6 +647,11 @@ def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:
                 hint = (f" (the project's 2D pretraining writes it: python -m pcrcg.pretrain2d"
                         f"{' profile=' + prof if prof else ''}; or set encoder2d.weights=PATH)")
             raise ConfigError(path, value, "an existing local file" + hint)
+        # readable without running code from it, before the data are prepared (a corrupt or foreign file named by
+        # hand failed only once training began)
+        from pcrcg.safeload import load_tensors
+
+        load_tensors(Path(str(value)).expanduser(), path)
 
 
 def _check_training_scenes(data: Mapping[str, Any]) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from pcrcg.config import (
@@ -16,7 +17,7 @@ from pcrcg.config import (
     preflight,
     validate_run_config,
 )
-from pcrcg.errors import ConfigError
+from pcrcg.errors import ConfigError, DataError
 from test_run_support import make_conf
 
 EXPERIMENTS = tuple(group_options("experiment"))  # every experiment file (conf/experiment/*.yaml)
@@ -193,7 +194,10 @@ def test_preflight_pretrained_encoder_needs_weights(conf, tmp_path):
     with pytest.raises(ConfigError) as info:
         preflight(cfg)
     assert info.value.setting == "encoder2d.weights" and info.value.allowed == "an existing local file"
-    missing.write_bytes(b"x")
+    missing.write_bytes(b"x")  # there, but not a torch file: refused before any work, naming file and setting
+    with pytest.raises(DataError, match=r"resnet18\.pth: encoder2d\.weights: refused by torch\.load\(weights_only=True\)"):
+        preflight(cfg)
+    torch.save({"conv1.weight": torch.zeros(1)}, missing)
     preflight(cfg)
     # without color the encoder is not used: no weights needed
     cfg2 = load_run_config(["profile=tiny", "encoder2d=imagenet"], conf)

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import copy
 import os
-import pickle
 import random
 import signal
 import sys
@@ -53,6 +52,7 @@ from pcrcg.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import PairOutput, PCRCGModule, build_lifter_from
 from pcrcg.registration.feature_registration import FragmentOutput
+from pcrcg.safeload import load_tensors
 
 LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
 
@@ -402,16 +402,7 @@ def read_checkpoint(checkpoint: str | Path) -> dict[str, Any]:
     path = Path(checkpoint)
     if not path.is_file():
         raise ConfigError("checkpoint", str(path), "an existing checkpoint file written by pcrcg training")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # "Detected pickle protocol 4": the error below says it all
-            ck = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise DataError(path, f"refused by torch.load(weights_only=True): {_unpickling_reason(e)}; "
-                              "only tensors and plain values are read, no code runs") from None
-    except Exception as e:  # noqa: BLE001 - zip/storage/legacy-format errors: a file that is not a checkpoint
-        raise DataError(path, f"is not a readable torch checkpoint, corrupt or truncated? "
-                              f"({type(e).__name__}: {one_line(e, 160)})") from None
+    ck = load_tensors(path)
     if isinstance(ck, Mapping) and ck and all(isinstance(v, torch.Tensor) for v in ck.values()):
         raise DataError(path, "is a bare state dict (weights without the model's hyper_parameters): give a "
                               "checkpoint written by pcrcg training (checkpoints/<hash>/model.ckpt, best.ckpt)")
@@ -422,20 +413,6 @@ def read_checkpoint(checkpoint: str | Path) -> dict[str, Any]:
         raise DataError(path, "holds a state dict without the model's hyper_parameters (a bare state dict?): "
                               "give a checkpoint written by pcrcg training (checkpoints/<hash>/model.ckpt)")
     return dict(ck)
-
-
-def _unpickling_reason(e: BaseException) -> str:
-    """The useful line of torch's weights-only refusal (``Unsupported global: GLOBAL os.system``)."""
-    import re
-
-    text = str(e)
-    m = re.search(r"GLOBAL (\S+)", text)
-    if m:
-        return f"it would call {m.group(1)} when loaded (a crafted or foreign pickle)"
-    m = re.search(r"WeightsUnpickler error:\s*(.+)", text)
-    if m:
-        return f"not a torch checkpoint ({m.group(1).strip()[:120]})"
-    return f"not a torch checkpoint ({one_line(e, 120)})"
 
 
 def _check_state_dict(module: torch.nn.Module, sd: Mapping[str, Any], path: Path) -> None:

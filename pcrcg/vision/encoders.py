@@ -50,6 +50,7 @@ from torch import nn
 
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.fields import option
+from pcrcg.safeload import load_tensors
 
 ARCHS = {"resnet18": ("basic", (2, 2, 2, 2)), "resnet34": ("basic", (3, 4, 6, 3)), "resnet50": ("bottleneck", (3, 4, 6, 3))}
 INITS = ("scratch", "imagenet", "pri3d")
@@ -281,17 +282,6 @@ def torchvision_keys(arch: str) -> list[str]:
     return list(ResNetEncoder(arch).state_dict().keys())
 
 
-def _read_state_dict(path: Path) -> Any:
-    import pickle
-    import zipfile
-
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, zipfile.BadZipFile, EOFError, ValueError) as exc:
-        raise DataError(path, f"encoder2d.weights: cannot read as a torch state dict "
-                              f"(torch.load(weights_only=True) failed: {exc.__class__.__name__}: {exc})") from None
-
-
 def _check_and_load(module: nn.Module, sd: Mapping[str, torch.Tensor], path: Path, what: str) -> None:
     """Strict load with a readable error naming the file, the setting and the first differences."""
     own = module.state_dict()
@@ -317,7 +307,7 @@ def load_torchvision_weights(model: ResUNet, path: str | os.PathLike) -> None:
     if not path.is_file():
         raise DataError(path, "encoder2d.weights: file does not exist (give a local torchvision ResNet "
                               "state dict; nothing is downloaded)")
-    sd = _read_state_dict(path)
+    sd = load_tensors(path, "encoder2d.weights")
     if isinstance(sd, Mapping) and "state_dict" in sd and isinstance(sd["state_dict"], Mapping):
         sd = sd["state_dict"]
     if not isinstance(sd, Mapping):
@@ -348,7 +338,7 @@ def load_pri3d_checkpoint(model: ResUNet, path: str | os.PathLike, load_decoder:
     if not path.is_file():
         raise DataError(path, "encoder2d.weights: pri3d checkpoint does not exist (written by the 2D "
                               "pretraining stage; nothing is downloaded)")
-    ckpt = _read_state_dict(path)
+    ckpt = load_tensors(path, "encoder2d.weights")
     if not (isinstance(ckpt, Mapping) and "state_dict" in ckpt and "arch" in ckpt):
         raise DataError(path, "encoder2d.weights: not a pri3d checkpoint (expected a dict with "
                               "'arch', 'state_dict' and 'meta'; a plain torchvision state dict needs encoder2d=imagenet)")

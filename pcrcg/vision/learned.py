@@ -111,15 +111,9 @@ def _kornia() -> Any:
 
 
 def _read_state(path: Path) -> dict[str, Any]:
-    import pickle
+    from pcrcg.safeload import load_tensors
 
-    import torch
-
-    try:
-        state = torch.load(str(path), map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, OSError, EOFError, ValueError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise DataError(path, f"not a weights file torch.load(weights_only=True) reads: {first}") from None
+    state = load_tensors(path)
     if not isinstance(state, dict):
         raise DataError(path, f"holds a {type(state).__name__}, not a state dict")
     return state
