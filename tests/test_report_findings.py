@@ -15,7 +15,8 @@ from pcrcg.config import CONF_DIR
 from pcrcg.errors import ConfigError
 from pcrcg.evaluation.pairs import PAIR_COLUMNS
 from pcrcg.report import generate_report
-from pcrcg.report.findings import HOLDS, NOT_RESOLVED, NOT_RUN, REVERSED, load_findings, ours_text, parse_findings
+from pcrcg.report.findings import (DASH, HOLDS, NOT_RESOLVED, NOT_RUN, REVERSED, line_verdict, load_findings, ours_text,
+                                   paper_position, parse_findings)
 from pcrcg.report.outcomes import split_prefix
 from pcrcg.report.stats import recall
 
@@ -174,6 +175,8 @@ def test_pcrcg_above_predator_holds_with_seeds_as_mean_and_std(report):
     assert ("| 1. PCR-CG (explicit, deep, Pri3D, 2 views) > Predator on 3DLoMatch | PCR-CG − Predator "
             "| 3DLoMatch RR 5000 | +6.5 | +") in md
     assert " (3 seeds) | [+" in md
+    assert "| Paper Δ vs interval |" in md and "*within*" in md
+    assert f"] | {paper_position(line.ours)} | holds |" in md
 
 
 def test_the_real_scene_column_reads_the_prefixed_metrics_and_artifacts(report):
@@ -301,7 +304,6 @@ def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
 
 
 def test_line_verdicts_follow_the_expected_sign_and_need_both_rows():
-    from pcrcg.report.findings import line_verdict
     from pcrcg.report.orderings import OrderingLine
     from pcrcg.report.spec import Comparison, Row
     from pcrcg.report.stats import Interval
@@ -316,6 +318,28 @@ def test_line_verdicts_follow_the_expected_sign_and_need_both_rows():
     assert line_verdict(+1, line) == NOT_RESOLVED
     line.row_runs = []
     assert line_verdict(+1, line) == NOT_RUN
+
+
+def test_the_papers_difference_is_placed_against_our_interval():
+    """*within*: our interval cannot tell the paper's effect from ours; *above* / *below*: an effect of the paper's
+    size is excluded here. A line that is not resolved reads differently in the two cases."""
+    from pcrcg.report.orderings import OrderingLine
+    from pcrcg.report.spec import Comparison, Row
+    from pcrcg.report.stats import Interval
+
+    a, b = Row("A", where={"x": 1}), Row("B", where={"x": 2})
+    line = OrderingLine(Comparison(a, b), "RR", "3DLoMatch", "", 5000, paper_ref=59.8, paper_row=66.3,
+                        ref_runs=["r1"], row_runs=["r2"])
+    line.interval = Interval(0.2, -3.8, 4.3, 0.95, 500, 8, 2000, 0)  # finding 1 of the record: 0 and +6.5 apart
+    assert line_verdict(+1, line) == NOT_RESOLVED and paper_position(line) == "above"
+    line.interval = Interval(0.5, -3.4, 7.0, 0.95, 500, 8, 2000, 0)
+    assert line_verdict(+1, line) == NOT_RESOLVED and paper_position(line) == "within"
+    line.interval = Interval(27.4, 22.9, 31.8, 0.95, 500, 8, 2000, 0)  # far larger than the paper's
+    assert line_verdict(+1, line) == HOLDS and paper_position(line) == "below"
+    line.interval = None
+    assert paper_position(line) == DASH
+    line.interval, line.paper_row = Interval(0.5, -1.0, 2.0, 0.95, 40, 2, 2000, 0), None  # no paper number
+    assert paper_position(line) == DASH
 
 
 @pytest.mark.parametrize("identity, n_runs, codes", [
