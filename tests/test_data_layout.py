@@ -36,6 +36,24 @@ def _pairs(n=3, seed=0):
             for k in range(n)]
 
 
+@pytest.mark.parametrize("edit, message", [
+    (lambda ls: ls.__setitem__(8, "0 1 garbage 0"), r"gt\.log: entry at line 8: line 9 is not 4 numbers: '0 1 garbage 0'"),
+    (lambda ls: ls.__setitem__(9, "1 0 0"), r"gt\.log: entry at line 8: line 10 holds 3 values, not 4: '1 0 0'"),
+    (lambda ls: ls.__setitem__(7, "1 x 9"), r"gt\.log: malformed entry at line 8: expected 'i j n' \(three integers\)"),
+    (lambda ls: ls.pop(), r"gt\.log: 14 non-empty lines; a gt\.log holds groups of 5"),
+])
+def test_a_malformed_gt_log_names_the_files_own_line(tmp_path, edit, message):
+    """Errors give the line of the file (blank lines counted), what is wrong and the text found there."""
+    write_gt_log(tmp_path / "gt.log", _pairs())
+    lines = (tmp_path / "gt.log").read_text().splitlines()
+    lines.insert(5, "")  # two blank lines between the first two entries: the second starts at the file's line 8
+    lines.insert(5, "")
+    edit(lines)
+    (tmp_path / "gt.log").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=message):
+        read_gt_log(tmp_path / "gt.log")
+
+
 def test_gt_files_round_trip(tmp_path):
     pairs = _pairs()
     infos = [np.arange(36, dtype=float).reshape(6, 6) + k for k in range(3)]

@@ -169,6 +169,41 @@ def _need(path: Path) -> Path:
     return path
 
 
+def _entries(path: Path, size: int, what: str) -> list[tuple[int, list[list[str]]]]:
+    """The non-empty lines of a log file in groups of ``size``: (the file's line number of the group's first line,
+    its lines split into words). A file that does not split into such groups is a DataError naming it."""
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise DataError(path, f"not a text file (a {what} is text)") from None
+    rows = [(n, ln.split()) for n, ln in enumerate(text.splitlines(), 1) if ln.strip()]
+    if len(rows) % size:
+        raise DataError(path, f"{len(rows)} non-empty lines; a {what} holds groups of {size}")
+    return [(rows[k][0], [r for _, r in rows[k : k + size]]) for k in range(0, len(rows), size)]
+
+
+def _matrix(path: Path, line: int, rows: list[list[str]], n: int) -> np.ndarray:
+    """The n x n matrix of an entry starting at the file's ``line`` (its header there, the rows after it)."""
+    for k, r in enumerate(rows):
+        if len(r) != n:
+            raise DataError(path, f"entry at line {line}: line {line + 1 + k} holds {len(r)} values, not {n}: "
+                                  f"{' '.join(r)[:80]!r}")
+    try:
+        return np.array(rows, dtype=np.float64)
+    except ValueError:
+        bad = next(k for k, r in enumerate(rows) if not all(_is_number(v) for v in r))
+        raise DataError(path, f"entry at line {line}: line {line + 1 + bad} is not {n} numbers: "
+                              f"{' '.join(rows[bad])[:80]!r}") from None
+
+
+def _is_number(v: str) -> bool:
+    try:
+        float(v)
+    except ValueError:
+        return False
+    return True
+
+
 def read_split(path: str | os.PathLike) -> list[str]:
     path = _need(Path(path))
     return [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
@@ -292,21 +327,17 @@ def write_fragment_info(path: str | os.PathLike, info: FragmentInfo, extra: str 
 def read_gt_log(path: str | os.PathLike, scene: str = "") -> list[PairRecord]:
     """Entries of a ``gt.log`` / ``est.log``: ``i j n`` then a 4x4 (j into i)."""
     path = _need(Path(path))
-    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
-    if len(lines) % 5:
-        raise DataError(path, f"{len(lines)} non-empty lines; a gt.log holds groups of 5")
     out = []
-    for k in range(0, len(lines), 5):
-        head = lines[k]
+    for line, rows in _entries(path, 5, "gt.log"):
+        head = rows[0]
         try:
             i, j, n = int(head[0]), int(head[1]), int(head[2])
-            T = np.array(lines[k + 1 : k + 5], dtype=np.float64)
         except (ValueError, IndexError):
-            raise DataError(path, f"malformed entry at line {k + 1}") from None
-        if T.shape != (4, 4):
-            raise DataError(path, f"entry at line {k + 1}: transform is not 4x4")
+            raise DataError(path, f"malformed entry at line {line}: expected 'i j n' (three integers), got "
+                                  f"{' '.join(head)[:80]!r}") from None
+        T = _matrix(path, line, rows[1:], 4)
         if not np.all(np.isfinite(T)):
-            raise DataError(path, f"entry at line {k + 1}: transform holds NaN or inf")
+            raise DataError(path, f"entry at line {line}: transform holds NaN or inf")
         out.append(PairRecord(scene, i, j, T, n_fragments=n))
     return out
 
@@ -322,19 +353,14 @@ def write_gt_log(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
 def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
     """``gt.info``: ``i j n`` then a 6x6 information matrix per pair."""
     path = _need(Path(path))
-    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
-    if len(lines) % 7:
-        raise DataError(path, f"{len(lines)} non-empty lines; a gt.info holds groups of 7")
     out = {}
-    for k in range(0, len(lines), 7):
+    for line, rows in _entries(path, 7, "gt.info"):
         try:
-            i, j = int(lines[k][0]), int(lines[k][1])
-            M = np.array(lines[k + 1 : k + 7], dtype=np.float64)
+            i, j = int(rows[0][0]), int(rows[0][1])
         except (ValueError, IndexError):
-            raise DataError(path, f"malformed entry at line {k + 1}") from None
-        if M.shape != (6, 6):
-            raise DataError(path, f"entry at line {k + 1}: information matrix is not 6x6")
-        out[(i, j)] = M
+            raise DataError(path, f"malformed entry at line {line}: expected 'i j n' (integers), got "
+                                  f"{' '.join(rows[0])[:80]!r}") from None
+        out[(i, j)] = _matrix(path, line, rows[1:], 6)
     return out
 
 
@@ -378,17 +404,15 @@ def write_pairs(path: str | os.PathLike, pairs: Sequence[PairRecord]) -> None:
 
 def read_pairs(path: str | os.PathLike) -> list[PairRecord]:
     path = _need(Path(path))
-    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
-    if len(lines) % 5:
-        raise DataError(path, "a pairs file holds groups of 5 lines")
     out = []
-    for k in range(0, len(lines), 5):
-        h = lines[k]
+    for line, rows in _entries(path, 5, "pairs file"):
+        h = rows[0]
         try:
-            T = np.array(lines[k + 1 : k + 5], dtype=np.float64)
-            out.append(PairRecord(h[0], int(h[1]), int(h[2]), T, float(h[3])))
+            scene, i, j, overlap = h[0], int(h[1]), int(h[2]), float(h[3])
         except (ValueError, IndexError):
-            raise DataError(path, f"malformed entry at line {k + 1}") from None
+            raise DataError(path, f"malformed entry at line {line}: expected 'scene i j overlap', got "
+                                  f"{' '.join(h)[:80]!r}") from None
+        out.append(PairRecord(scene, i, j, _matrix(path, line, rows[1:], 4), overlap))
     return out
 
 
