@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
 
 from test_run_support import FAKES, expected_rr, make_conf, read_status_files, run_cli, tracked_runs
 
@@ -34,11 +35,11 @@ def sweep(tmp_path_factory):
             return ["--config-path", str(conf), f"+experiment={exp}", "profile=tiny", *FAKES,
                     f"hydra.sweep.dir={root}/multirun/{name}", "-m"]
 
-        # window_size runs with Pri3D weights (its caption): a stand-in file where the default points (the fake
+        # window_size runs with Pri3D weights (its caption): a stand-in torch file where the default points (the fake
         # stages never read it); the backbone sweep below runs without it (pri3d: not run)
         pri3d = root / "checkpoints" / "pretrain2d" / "synthmatch-seed1-tiny" / "pri3d_resnet18.pth"
         pri3d.parent.mkdir(parents=True)
-        pri3d.write_bytes(b"stand-in")
+        torch.save({"stand-in": torch.zeros(1)}, pri3d)  # a torch file: preflight reads every weights file named
         mp.setenv("PCRCG_FAKE_FAIL", "window_size=7")
         out["rc_fail"] = run_cli(sweep_args("a"), root, mp)
         out["status_fail"] = read_status_files(root / "multirun" / "a")
