@@ -246,6 +246,24 @@ def test_report_cli(store, monkeypatch, capsys):
                                                      "window_size_recall.png"]
 
 
+def test_report_cli_refuses_a_store_that_is_not_there(tmp_path, monkeypatch, capsys):
+    """A missing store is one line and exit 2 before anything is written: tables of no runs would replace the
+    committed ones, and MLflow would create the database file (a run's own report keeps writing them)."""
+    from pcrcg.report import __main__ as report_main
+
+    out, db = tmp_path / "out", tmp_path / "none" / "mlflow.db"
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["pcrcg.report", "--config-path", str(CONF_DIR), f"out_dir={out}",
+                                     f"tracking_uri=sqlite:///{db}"])
+    with pytest.raises(SystemExit) as info:
+        report_main.main()
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"pcrcg.report: error: {db}: no MLflow store there (tracking_uri=... or MLFLOW_TRACKING_URI; "
+                   "python -m pcrcg.run makes it)"]
+    assert not out.exists() and not db.exists() and not db.parent.exists()
+
+
 def test_shipped_paper_numbers_match_the_shared_copy():
     if not (SHARED / "paper" / "paper_tables.csv").is_file():
         pytest.skip("../shared is not here")

@@ -79,8 +79,11 @@ def _select(specs: Mapping[str, TableSpec], tables: Any) -> list[str]:
 
 
 def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.PathLike | None = None,
-                    command: str | None = None) -> ReportResult:
-    """Write the report described by ``cfg`` (the ``conf/report.yaml`` node). See module docstring."""
+                    command: str | None = None, require_store: bool = False) -> ReportResult:
+    """Write the report described by ``cfg`` (the ``conf/report.yaml`` node). See module docstring.
+    ``require_store``: a SQLite store that is not there is an error before anything is written (the command
+    line's: tables of no runs would replace the committed ones); a run's own report (``pcrcg.run``) writes them."""
+    from pcrcg.tracking.store import require_store as check_store
     from pcrcg.tracking.store import resolve_tracking_uri
 
     c = _plain(cfg)
@@ -91,8 +94,10 @@ def generate_report(cfg: DictConfig | Mapping[str, Any], base_dir: str | os.Path
     settings = StatsSettings.from_dict(c.get("stats"))  # a bad setting stops the report before it reads or writes
     out_dir = Path(str(c.get("out_dir") or "reports"))
     out_dir = out_dir if out_dir.is_absolute() else base / out_dir
-    out_dir.mkdir(parents=True, exist_ok=True)
     uri = resolve_tracking_uri(c.get("tracking_uri"), base)
+    if require_store:
+        check_store(uri, "tracking_uri=... or MLFLOW_TRACKING_URI; python -m pcrcg.run makes it")
+    out_dir.mkdir(parents=True, exist_ok=True)
     from pcrcg.report.findings import fill_findings, parse_findings, write_findings
 
     experiments = sorted({e for n in names for e in specs[n].experiments})

@@ -26,7 +26,7 @@ def main(cfg: DictConfig) -> None:
     command = " ".join(["python -m pcrcg.report", *HydraConfig.get().overrides.task])
     with one_line_errors("pcrcg.report"):  # a bad setting or file: one line, exit 2; Ctrl-C: one line
         check_files(cfg)
-        result = generate_report(cfg, base_dir=base, command=command)
+        result = generate_report(cfg, base_dir=base, command=command, require_store=True)
     print(f"[report] {len(result.tables)} tables, {len(result.files)} files in {result.out_dir}")
     print(f"[report] start here: {result.index}")
     print(f"[report] runs: {ui_command(result.tracking_uri)}")

@@ -113,23 +113,14 @@ def expand_jobs(jobs: Iterable[tuple[str, str]], seeds: Sequence[int], profile: 
     return out
 
 
-def check_store(uri: str) -> None:
-    """A SQLite store that is not there: a :class:`PcrcgError` naming the file (nothing is created)."""
-    from pcrcg.tracking.store import sqlite_path
-
-    db = sqlite_path(uri)
-    if db is not None and str(db) != ":memory:" and not db.is_file():
-        raise PcrcgError(f"{db}: no MLflow store there (--tracking-uri or MLFLOW_TRACKING_URI)")
-
-
 def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str, Any]]]:
     """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "cpu", "name", "stale", "data"}``
     (read-only; ``stale``: RUNNING, and its process on this host is gone; ``data``: the prefixes of its metrics
     ``<name>/...``, e.g. the real scene's, that ``pcrcg.evaluate mode=tracked name=<name>`` logged)."""
-    from pcrcg.tracking.store import client
+    from pcrcg.tracking.store import client, require_store
     from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH, is_stale
 
-    check_store(uri)
+    require_store(uri)
     c = client(uri)
     out: dict[str, list[dict[str, Any]]] = {}
     for name in dict.fromkeys(experiments):
@@ -266,7 +257,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     from pcrcg.report.findings import load_findings, registration_where
     from pcrcg.tracking.git import code_version
-    from pcrcg.tracking.store import resolve_tracking_uri
+    from pcrcg.tracking.store import require_store, resolve_tracking_uri
 
     try:
         where = registration_where(args.registration) if args.registration else {}
@@ -274,9 +265,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if spec is None:
             raise ConfigError("findings", None, "claims in conf/report.yaml (findings.claims)")
         uri = resolve_tracking_uri(args.tracking_uri)
-        check_store(uri)
+        require_store(uri)
         if args.estimates_from:
-            check_store(resolve_tracking_uri(args.estimates_from))
+            require_store(resolve_tracking_uri(args.estimates_from))
         planned = expand_jobs(spec.jobs(), spec.seeds, args.profile)
         names = {str(cfg.experiment_name) for *_, cfg in planned}
         runs = _store_runs(uri, names)

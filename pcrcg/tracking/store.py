@@ -56,6 +56,16 @@ def sqlite_path(uri: str) -> Path | None:
     return None
 
 
+def require_store(uri: str, hint: str = "--tracking-uri or MLFLOW_TRACKING_URI") -> None:
+    """A SQLite store that is not there: a :class:`pcrcg.errors.PcrcgError` naming the file, before anything is
+    read or written (nothing is created). ``hint``: how the command names its store."""
+    from pcrcg.errors import PcrcgError
+
+    db = sqlite_path(uri)
+    if db is not None and str(db) != ":memory:" and not db.is_file():
+        raise PcrcgError(f"{db}: no MLflow store there ({hint})")
+
+
 def artifact_root(uri: str) -> str | None:
     """Where experiments created here keep their artifacts: ``mlartifacts/`` beside a SQLite
     file, the server's default (None) otherwise."""
