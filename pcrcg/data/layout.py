@@ -184,24 +184,16 @@ def _entries(path: Path, size: int, what: str) -> list[tuple[int, list[list[str]
 
 def _matrix(path: Path, line: int, rows: list[list[str]], n: int) -> np.ndarray:
     """The n x n matrix of an entry starting at the file's ``line`` (its header there, the rows after it)."""
+    values = []
     for k, r in enumerate(rows):
+        at = f"entry at line {line}: line {line + 1 + k}"
         if len(r) != n:
-            raise DataError(path, f"entry at line {line}: line {line + 1 + k} holds {len(r)} values, not {n}: "
-                                  f"{' '.join(r)[:80]!r}")
-    try:
-        return np.array(rows, dtype=np.float64)
-    except ValueError:
-        bad = next(k for k, r in enumerate(rows) if not all(_is_number(v) for v in r))
-        raise DataError(path, f"entry at line {line}: line {line + 1 + bad} is not {n} numbers: "
-                              f"{' '.join(rows[bad])[:80]!r}") from None
-
-
-def _is_number(v: str) -> bool:
-    try:
-        float(v)
-    except ValueError:
-        return False
-    return True
+            raise DataError(path, f"{at} holds {len(r)} values, not {n}: {' '.join(r)[:80]!r}")
+        try:
+            values.append([float(v) for v in r])
+        except ValueError:
+            raise DataError(path, f"{at} is not {n} numbers: {' '.join(r)[:80]!r}") from None
+    return np.array(values, dtype=np.float64)
 
 
 def read_split(path: str | os.PathLike) -> list[str]:

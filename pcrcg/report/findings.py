@@ -524,6 +524,15 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
                           list(row_seeds.values()))
 
 
+ABOVE, BELOW, WITHIN = "above", "below", "within"
+PAPER_POSITION_TEXT = (
+    "Paper Δ vs interval: where the paper's difference lies against our interval. *within*: our pairs and seeds "
+    "cannot tell the paper's effect from ours (a *not resolved* line there needs more pairs or seeds); *above* / "
+    "*below*: an effect of the paper's size is excluded here (a *not resolved* line with the paper's Δ *above* says "
+    "that the effect the paper reports does not reproduce at its size in this setting, not that more pairs would "
+    "find it).")
+
+
 def paper_position(line: OrderingLine | None) -> str:
     """Where the paper's difference lies against our interval: ``within`` it (our pairs and seeds cannot tell the
     paper's effect from ours), ``above`` or ``below`` it (an effect of the paper's size is excluded here), or DASH
@@ -533,15 +542,6 @@ def paper_position(line: OrderingLine | None) -> str:
     if iv is None or p is None or (isinstance(p, float) and math.isnan(p)):
         return DASH
     return ABOVE if p > iv.hi else BELOW if p < iv.lo else WITHIN
-
-
-ABOVE, BELOW, WITHIN = "above", "below", "within"
-PAPER_POSITION_TEXT = (
-    "Paper Δ vs interval: where the paper's difference lies against our interval. *within*: our pairs and seeds "
-    "cannot tell the paper's effect from ours (a *not resolved* line there needs more pairs or seeds); *above* / "
-    "*below*: an effect of the paper's size is excluded here (a *not resolved* line with the paper's Δ *above* says "
-    "that the effect the paper reports does not reproduce at its size in this setting, not that more pairs would "
-    "find it).")
 
 
 # ---------------------------------------------------------------------------------------------- rendering
