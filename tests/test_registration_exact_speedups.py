@@ -157,6 +157,59 @@ def test_grid_overlap_score_keeps_every_count_that_can_win(seed):
     assert int((grid(R, t, 0)[0] < 0).sum()) > 0  # hopeless hypotheses are dropped
 
 
+@pytest.mark.parametrize("wide", [False, True])
+def test_grid_bounds_are_the_weighted_counts_of_in_and_maybe_points(wide, monkeypatch):
+    """``_bounds`` (float32 products of the states and their squares; float64 for a large total weight) gives
+    the weights of the *in* points and of the *in* + *maybe* points exactly, repeated source points included."""
+    rng, src, tgt, _ = _clouds(0)
+    grid = _GridOverlapScore(src[rng.integers(0, len(src), 3000)], tgt, 0.05, torch.float32, torch.device("cpu"))
+    if wide:  # as if the weights summed past 2**22: the float64 path
+        monkeypatch.setattr(grid, "total", 1 << 23)
+    states = torch.as_tensor(rng.choice(np.array([0, 1, 2], np.int8), size=(64, len(grid.weight))))
+    low, high = grid._bounds(states)
+    s = states.numpy()
+    assert grid.weight.max() > 1  # repeats: weighted
+    assert np.array_equal(low, ((s == 2) * grid.weight).sum(1)) and np.array_equal(high, ((s > 0) * grid.weight).sum(1))
+    assert grid._w.dtype == (torch.float64 if wide else torch.float32)
+
+
+def test_grid_settles_losing_hypotheses_with_fewer_queries(monkeypatch):
+    """The *maybe* points go to the KD-tree chunk by chunk and a hypothesis stops once it cannot reach the bar:
+    the same counts as querying them all at once, with fewer queries."""
+    rng, src, tgt, _ = _clouds(1)
+    s = src[rng.integers(0, len(src), 2500)]
+    tgt = s + np.random.default_rng(1).normal(scale=0.01, size=s.shape)
+    R = torch.as_tensor(np.stack([random_rotation(rng, 0.05) for _ in range(48)]), dtype=torch.float32)
+    t = torch.as_tensor(rng.normal(scale=0.04, size=(48, 3)), dtype=torch.float32)
+    R[5], t[5] = torch.eye(3), torch.zeros(3)
+    grid = _GridOverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))
+    queried = []
+    tree_query = grid.tree.query
+
+    class Counting:
+        data = grid.tree.data
+
+        def query(self, x, **kw):
+            queried.append(len(x))
+            return tree_query(x, **kw)
+
+    grid._build()
+    monkeypatch.setattr(grid, "tree", Counting())
+    states = grid._states(R, t).numpy()
+    low, high = grid._bounds(torch.from_numpy(states))
+    group = np.flatnonzero(high >= 0)
+    maybe = states[group] == 1
+    level = int(_OverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))(R, t)[0].max())
+    settled = grid._settle(R, t, group, maybe, low[group], level)
+    hyp, pts, d = grid._query(R, t, group, maybe)
+    at_once = low[group] + np.bincount(hyp, weights=grid.weight[pts] * (d < 0.05), minlength=len(group)).astype(np.int64)
+    kept = settled >= 0
+    assert kept[5] and settled[5] == level  # the right one
+    assert np.array_equal(settled[kept], at_once[kept])
+    assert (at_once[~kept] < level).all() and (~kept).sum() > 0
+    assert sum(queried[:-1]) < queried[-1]  # chunk by chunk, fewer than all at once
+
+
 def test_overlap_scorer_choice_with_the_same_results(monkeypatch):
     """The grid scorer by default; where the grid would be too large, the chunked scorer from
     ``prune_min_points`` source points and the reference below; the results are the same every way."""
