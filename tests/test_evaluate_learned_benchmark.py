@@ -79,6 +79,8 @@ def test_learned_model_on_every_benchmark_with_views(release_root, color_checkpo
             assert len(read_estimates(out_dir / b / str(n) / "kitchen" / "est.log")) == n_pairs
     saved = json.loads((out_dir / "metrics.json").read_text())
     assert {"3DMatch/rr_300", "3DMatch/fmr_100", "3DLoMatch/ir_300", "3DMatch/rre", "color_coverage"} <= set(saved["metrics"])
+    per = [saved["metrics"][f"{b}/color_coverage"] for b in ("3DMatch", "3DLoMatch")]  # per benchmark, pooled as their mean
+    assert saved["metrics"]["color_coverage"] == pytest.approx(sum(per) / 2)
     assert saved["metrics"]["3DMatch/rr_300"] == res["benchmarks"]["3DMatch"]["rr_300"]
     assert saved["benchmarks"]["3DMatch"]["protocol"]["pairs"] == 4
     printed = capsys.readouterr().out

@@ -302,7 +302,7 @@ def test_pipeline_evaluate_stage_learned_and_icp_from_learned(layout, tmp_path, 
             assert {f"{b}/rr_{n}", f"{b}/fmr_{n}", f"{b}/ir_{n}", f"{b}/rre_{n}", f"{b}/rte_{n}"} <= set(m)
         assert m[f"{b}/rre"] == m[f"{b}/rre_1000"]
     assert m["3DMatch/rr_1000"] == 100.0 and m["3DMatch/fmr_1000"] == 100.0
-    assert m["color_coverage"] == pytest.approx(0.8)
+    assert m["color_coverage"] == pytest.approx(0.8) and m["3DLoMatch/color_coverage"] == pytest.approx(0.8)
     assert res["protocol"]["3DMatch"]["pairs_counted_in_rr"] == 3
     assert len(read_estimates(tmp_path / "learned" / "learned" / "3DMatch" / "1000" / "room" / "est.log")) == 7
     # ICP started from the learned estimates at the largest N
