@@ -200,7 +200,7 @@ def test_grid_settles_losing_hypotheses_with_fewer_queries(monkeypatch):
     group = np.flatnonzero(high >= 0)
     maybe = states[group] == 1
     level = int(_OverlapScore(s, tgt, 0.05, torch.float32, torch.device("cpu"))(R, t)[0].max())
-    settled = grid._settle(R, t, group, maybe, low[group], level)
+    settled = grid._settle(R, t, group, maybe, low[group], high[group], level)
     hyp, pts, d = grid._query(R, t, group, maybe)
     at_once = low[group] + np.bincount(hyp, weights=grid.weight[pts] * (d < 0.05), minlength=len(group)).astype(np.int64)
     kept = settled >= 0
