@@ -24,12 +24,82 @@ It also says whether both gave the same transforms, correspondences and RANSAC c
 from __future__ import annotations
 
 import argparse
-import itertools
 import time
 
 import numpy as np
 
 from pcrcg.config import N_POINTS
+
+
+def infer_outputs(module, root: str, pairs: int, memo_bytes: int | None = None) -> tuple[list, float]:
+    """The model's outputs on the first ``pairs`` pairs of each test benchmark of ``root`` and the seconds per
+    pair (data + network). For a deep-feature model the 2D maps are reused up to ``memo_bytes`` (0: computed
+    on every pair's views; None: the default bound), from an empty memo."""
+    import itertools
+
+    from pcrcg.models.train import infer
+
+    extractor = module.lifter.extractor if module.lifter is not None else None
+    if getattr(extractor, "kind", None) == "deep":
+        extractor.memo_bytes = memo_bytes
+        extractor._deep_memo.clear()  # a new bound starts from an empty memo
+    got, t0 = [], time.perf_counter()
+    for b in ("3DMatch", "3DLoMatch"):
+        got += list(itertools.islice(infer(module, root, b, max_pairs=pairs, progress=False), pairs))
+    return got, (time.perf_counter() - t0) / max(len(got), 1)
+
+
+# the two budgets timed: the run's default (Open3D 0.10) and registration=early_exit
+BUDGETS = (("run default: Open3D 0.10 budget (50000, 1000)", 1000, 1.0), ("registration=early_exit", None, 0.999))
+
+
+def registration_speed(outs: list, distance: float, max_validation: int | None = 1000, confidence: float = 1.0,
+                       score: str = "overlap") -> dict:
+    """Seconds per pair of registration (sampling, matching, RANSAC) at every N of the protocol on the
+    outputs ``outs`` (:func:`infer_outputs`), before (every sampled row matched, no pruning) and after (the
+    defaults): ``{"before": {N: s}, "after": {N: s}, "identical": bool}`` (same transforms, correspondences and
+    RANSAC counts on every pair and N)."""
+    import pcrcg.registration.feature_registration as P
+    from pcrcg.evaluation.model import as_fragment
+    from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
+    from pcrcg.registration.ransac import RansacConfig
+
+    plain = P.match_descriptors
+
+    def match_every_row(a, b, src_ids=None, tgt_ids=None, chunk=None, **kw):  # noqa: ANN001, ARG001
+        return plain(a, b, chunk=4096, **kw)
+
+    seconds, results = {}, {}
+    for new in (False, True):
+        P.match_descriptors = plain if new else match_every_row
+        try:
+            cfg = RegistrationConfig(fewer_points="with_replacement", ransac=RansacConfig(
+                distance=distance, max_validation=max_validation, confidence=confidence, prune=new, score=score))
+            per_n, res = {}, []
+            for n in N_POINTS:
+                t = time.perf_counter()
+                for o in outs:
+                    r = register_features(as_fragment(o.src), as_fragment(o.tgt), n, cfg,
+                                          seed=pair_seed(0, o.scene, o.i, o.j, n))
+                    res.append((r.transform, r.correspondences, r.ransac.iterations, r.ransac.n_checked))
+                per_n[n] = (time.perf_counter() - t) / len(outs)
+        finally:
+            P.match_descriptors = plain
+        seconds["after" if new else "before"], results[new] = per_n, res
+    same = all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2:] == b[2:]
+               for a, b in zip(results[False], results[True]))
+    return {**seconds, "identical": bool(same)}
+
+
+def print_registration(name: str, got: dict) -> None:
+    """The per-N table of :func:`registration_speed`'s result."""
+    print(f"\n{name}; identical results: {got['identical']}")
+    print("     N   before s/pair   after s/pair   speed-up")
+    for n in N_POINTS:
+        b0, b1 = got["before"][n], got["after"][n]
+        print(f"{n:6d} {b0:15.3f} {b1:14.3f} {b0 / b1:9.2f}x")
+    s0, s1 = sum(got["before"].values()), sum(got["after"].values())
+    print(f"  all {len(N_POINTS)} N: {s0:.3f} -> {s1:.3f} s/pair ({s0 / s1:.2f}x)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -42,11 +112,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch
 
-    import pcrcg.registration.feature_registration as P
-    from pcrcg.evaluation.model import as_fragment
-    from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
-    from pcrcg.registration.ransac import RansacConfig
-    from pcrcg.models.train import infer, load_module
+    from pcrcg.models.train import load_module
 
     torch.set_num_threads(1)
 
@@ -55,19 +121,9 @@ def main(argv: list[str] | None = None) -> None:
     deep = getattr(extractor, "kind", None) == "deep"
     bound = extractor.memo_bytes if deep else None  # the checkpoint's encoder2d.memo_mb, else DEEP_MEMO_BYTES
 
-    def infer_all(memo_bytes: int | None) -> tuple[list, float]:
-        """Both benchmarks' outputs and seconds per pair, deep 2D maps reused up to ``memo_bytes``."""
-        if deep:
-            extractor.memo_bytes = memo_bytes
-            extractor._deep_memo.clear()  # a new bound starts from an empty memo
-        got, t0 = [], time.perf_counter()
-        for b in ("3DMatch", "3DLoMatch"):
-            got += list(itertools.islice(infer(module, args.root, b, max_pairs=args.pairs, progress=False), args.pairs))
-        return got, (time.perf_counter() - t0) / max(len(got), 1)
-
     if deep:  # before: the 2D encoder on every pair's views; after: each view's map once (eval mode)
-        before, t_before = infer_all(0)
-    outs, t_after = infer_all(bound)
+        before, t_before = infer_outputs(module, args.root, args.pairs, 0)
+    outs, t_after = infer_outputs(module, args.root, args.pairs, bound)
     if deep:
         same = all(np.array_equal(getattr(a, f).descriptors, getattr(b, f).descriptors)
                    and np.array_equal(getattr(a, f).overlap, getattr(b, f).overlap)
@@ -77,39 +133,8 @@ def main(argv: list[str] | None = None) -> None:
     else:
         print(f"inference (data + network): {t_after:.3f} s/pair over {len(outs)} pairs")
 
-    plain = P.match_descriptors
-
-    def match_every_row(a, b, src_ids=None, tgt_ids=None, chunk=None, **kw):  # noqa: ANN001, ARG001
-        return plain(a, b, chunk=4096, **kw)
-
-    for name, mv, conf in (("run default: Open3D 0.10 budget (50000, 1000)", 1000, 1.0),
-                           ("registration=early_exit", None, 0.999)):
-        seconds, results = {}, {}
-        for new in (False, True):
-            P.match_descriptors = plain if new else match_every_row
-            try:
-                cfg = RegistrationConfig(fewer_points="with_replacement", ransac=RansacConfig(
-                    distance=args.distance, max_validation=mv, confidence=conf, prune=new))
-                per_n, res = {}, []
-                for n in N_POINTS:
-                    t = time.perf_counter()
-                    for o in outs:
-                        r = register_features(as_fragment(o.src), as_fragment(o.tgt), n, cfg,
-                                              seed=pair_seed(0, o.scene, o.i, o.j, n))
-                        res.append((r.transform, r.correspondences, r.ransac.iterations, r.ransac.n_checked))
-                    per_n[n] = (time.perf_counter() - t) / len(outs)
-            finally:
-                P.match_descriptors = plain
-            seconds[new], results[new] = per_n, res
-        same = all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2:] == b[2:]
-                   for a, b in zip(results[False], results[True]))
-        print(f"\n{name}; identical results: {same}")
-        print("     N   before s/pair   after s/pair   speed-up")
-        for n in N_POINTS:
-            b0, b1 = seconds[False][n], seconds[True][n]
-            print(f"{n:6d} {b0:15.3f} {b1:14.3f} {b0 / b1:9.2f}x")
-        s0, s1 = sum(seconds[False].values()), sum(seconds[True].values())
-        print(f"  all {len(N_POINTS)} N: {s0:.3f} -> {s1:.3f} s/pair ({s0 / s1:.2f}x)")
+    for name, mv, conf in BUDGETS:
+        print_registration(name, registration_speed(outs, args.distance, mv, conf))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,106 @@
+"""pcrcg.benchmarks.speed: a store's runs read into stage rows, scaled to the reference workload, the summary's
+verdicts, and bad input refused in one line."""
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pcrcg.benchmarks import speed
+from pcrcg.benchmarks.speed import REFERENCE, scaled, stage_rows, summary
+
+
+def _log(c, exp_id: str, params: dict, metrics: dict, code: str = "c1", status: str = "FINISHED") -> str:
+    from pcrcg.tracking.tracker import TAG_CODE
+
+    run = c.create_run(exp_id, tags={TAG_CODE: code}, run_name=params.pop("_name", "r"))
+    rid = run.info.run_id
+    for k, v in params.items():
+        c.log_param(rid, k, v)
+    for k, v in metrics.items():
+        c.log_metric(rid, k, v)
+    c.set_terminated(rid, status)
+    time.sleep(0.01)  # distinct start times: the newest run of a key is the one kept
+    return rid
+
+
+def _metrics(train_cpu: float | None, eval_cpu: float | None, steps: int = 1800, train_s: float = 900.0,
+             evaluate_s: float = 300.0) -> dict:
+    m = {"time/train_s": train_s, "time/evaluate_s": evaluate_s, "time/total_s": train_s + evaluate_s + 5,
+         "train/global_step": float(steps), "3DMatch/n_pairs": 500.0, "3DLoMatch/n_pairs": 400.0,
+         "real-redkitchen/3DMatch/n_pairs": 27.0}  # the real scene's pairs are not the run's evaluation
+    if train_cpu is not None:
+        m["time/train_cpu_s"] = train_cpu
+    if eval_cpu is not None:
+        m["time/evaluate_cpu_s"] = eval_cpu
+    return m
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> str:
+    from pcrcg.tracking.store import client
+
+    uri = f"sqlite:///{tmp_path_factory.mktemp('speed') / 'runs.db'}"
+    c = client(uri)
+    exp = c.create_experiment("main_results")
+    geo = {"method": "learned", "features.name": "none", "registration.ransac.score": "overlap"}
+    _log(c, exp, {**geo, "_name": "older"}, _metrics(700.0, 200.0))
+    _log(c, exp, {**geo, "_name": "newest"}, _metrics(540.0, 180.0))  # kept: newest of its key
+    _log(c, exp, {**geo, "features.name": "deep", "_name": "deep"}, _metrics(None, None, steps=1500))
+    _log(c, exp, {**geo, "_name": "other code"}, _metrics(1.0, 1.0), code="c2")
+    _log(c, exp, {**geo, "_name": "killed"}, _metrics(1.0, 1.0), code="c1", status="KILLED")
+    _log(c, exp, {"method": "fpfh", "features.name": "none", "_name": "fpfh"}, {"time/evaluate_s": 10.0})
+    return uri
+
+
+def test_stage_rows_keep_the_newest_finished_learned_run_per_key(store):
+    rows = {(r["features"], r["score"]): r for r in stage_rows(store, code="c1")}
+    assert set(rows) == {("none", "overlap"), ("deep", "overlap")}  # not fpfh, not the KILLED, not code c2
+    geo = rows[("none", "overlap")]
+    assert geo["name"] == "newest" and geo["code"] == "c1" and geo["steps"] == 1800
+    assert geo["pairs"] == 900  # 500 + 400: the generated benchmarks only
+    assert geo["cpu"] == {"train": 540.0, "evaluate": 180.0} and geo["wall"]["total"] == 1205.0
+    assert rows[("deep", "overlap")]["cpu"] == {}
+    # without a code version, the newest of every code: the c2 run is newer than "newest"
+    assert {r["name"] for r in stage_rows(store)} == {"other code", "deep"}
+
+
+def test_scaled_takes_cpu_seconds_where_logged_else_wall(store):
+    rows = {r["features"]: r for r in stage_rows(store, code="c1")}
+    s = scaled(rows["none"])
+    assert s["kind"] == "cpu" and s["per_step_s"] == pytest.approx(0.3) and s["per_pair_s"] == pytest.approx(0.2)
+    assert s["train_s"] == pytest.approx(0.3 * REFERENCE["steps"]) and s["evaluate_s"] == pytest.approx(36.0)
+    d = scaled(rows["deep"], steps=150, pairs=90)
+    assert d["kind"] == "wall" and d["train_s"] == pytest.approx(900.0 / 1500 * 150)
+    assert d["evaluate_s"] == pytest.approx(300.0 / 900 * 90)
+
+
+def test_summary_says_met_or_missed_by_how_much():
+    lines = summary({"none": {"train_s": 100.0, "evaluate_s": 50.0, "kind": "cpu"},
+                     "deep": {"train_s": 250.0, "evaluate_s": 100.0, "kind": "cpu"}})
+    geo, deep = lines[2], lines[3]
+    assert "| none | 450 | 150 (100 + 50, cpu) | 3.00x | <= 150 s (3x) | met |" == geo
+    assert deep.startswith("| deep | 660 | 350 ") and "<= 330 s (2x)" in deep and deep.endswith("missed by 20 s |")
+
+
+def test_a_deep_reference_run_without_pri3d_weights_is_skipped_with_the_command(tmp_path, monkeypatch):
+    monkeypatch.setattr(speed, "pri3d_weights", lambda profile: tmp_path / "none.pth")
+    row, how = speed.reference_run("cpu", "deep", tmp_path)
+    assert row is None and how.startswith("skipped: no Pri3D weights at ") and "python -m pcrcg.pretrain2d" in how
+    assert not (tmp_path / "speed.db").exists()
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--colors", "none,bogus"], "--colors"),
+    (["--checkpoint", "/nonexistent/model.ckpt"], "/nonexistent/model.ckpt"),
+    (["--store", "sqlite:////nonexistent/x.db"], "/nonexistent/x.db"),
+])
+def test_bad_input_is_one_line_before_any_work(args, needle):
+    proc = subprocess.run([sys.executable, "-m", "pcrcg.benchmarks.speed", *args, "--skip", "train,eval"],
+                          capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("pcrcg.benchmarks.speed: error: ") and needle in lines[0]
+    assert not Path("/nonexistent/x.db").exists()
