@@ -8,8 +8,12 @@ fragment a pair or a benchmark names, the pairs files and the benchmark files (`
 a traceback mid-training (train scenes) or after training (test scenes).
 
 Frames are decoded on a thread pool (OpenCV releases the GIL). A passed check leaves a stamp
-(``<root>/.pcrcg-inputs-ok.json``: the checked files' sizes and modification times); while none of
-them changes, the next run only compares the stamp (a fraction of a second).
+(``<root>/.pcrcg-inputs-ok.json``: a signature of the checked files' paths below the root, sizes and
+modification times); while none of them changes, the next run only compares the stamp (a fraction of a
+second). The stamp keeps the last :data:`STAMP_KEEP` signatures that passed, so that runs reading different
+sets of files from one data set (a sweep's learned runs read train, val and test scenes, its FPFH or ICP
+runs only the test scenes) do not undo each other's stamps, and paths are signed relative to the root, so
+that the same data set reached through a link or moved elsewhere keeps its stamp.
 """
 
 from __future__ import annotations
@@ -40,7 +44,8 @@ from pcrcg.data.layout import (
 from pcrcg.errors import DataError
 
 STAMP = ".pcrcg-inputs-ok.json"
-_STAMP_VERSION = 1
+_STAMP_VERSION = 2
+STAMP_KEEP = 16  # signatures of passed checks a stamp keeps (the newest)
 
 
 def run_splits(cfg: Any) -> tuple[list[str], list[str]]:
@@ -84,7 +89,7 @@ def check_inputs(layout: Layout, splits: Sequence[str], benchmarks: Sequence[str
             for r in read_gt_log(sd / "gt.log", sd.name):
                 fragments.setdefault(sd.name, set()).update((r.i, r.j))
     files, frames, scenes_k = _input_files(layout, fragments)
-    stamp_key = _signature([*texts, *files])
+    stamp_key = _signature([*texts, *files], layout.root)
     stamp = layout.root / STAMP
     if _stamp_ok(stamp, stamp_key):
         return {"files": len(files) + len(texts), "frames": len(frames), "cached": 1}
@@ -169,25 +174,43 @@ def _check_one(job: tuple[str, Any]) -> tuple[str, Any]:
     return kind, None
 
 
-def _signature(paths: Iterable[Path]) -> str:
+def _signature(paths: Iterable[Path], root: Path) -> str:
+    """sha256 of the files' paths (below ``root`` where they are), sizes and modification times."""
     h = hashlib.sha256(str(_STAMP_VERSION).encode())
+    base = Path(os.path.abspath(root))
     for p in paths:
         st = p.stat()
-        h.update(f"{p}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        try:
+            name = Path(os.path.abspath(p)).relative_to(base).as_posix()
+        except ValueError:  # a file outside the data set (none today): its own path
+            name = str(p)
+        h.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return h.hexdigest()
 
 
-def _stamp_ok(path: Path, key: str) -> bool:
+def _stamps(path: Path) -> dict[str, str]:
+    """The signatures a stamp holds -> when each passed (empty when there is none or it is unreadable)."""
     try:
-        return json.loads(path.read_text()).get("signature") == key
+        got = json.loads(path.read_text())
+        held = got.get("signatures")
+        return {str(k): str(v) for k, v in held.items()} if isinstance(held, dict) else {}
     except (OSError, ValueError, AttributeError):
-        return False
+        return {}
+
+
+def _stamp_ok(path: Path, key: str) -> bool:
+    return key in _stamps(path)
 
 
 def _write_stamp(path: Path, key: str) -> None:
+    """Adds ``key`` to the stamp, keeping the newest :data:`STAMP_KEEP` signatures (written whole, then renamed:
+    a run killed mid-write leaves the old stamp)."""
+    held = {k: v for k, v in _stamps(path).items() if k != key}
+    held[key] = time.strftime("%Y-%m-%dT%H:%M:%S")
+    keep = dict(list(held.items())[-STAMP_KEEP:])
     try:
         tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps({"signature": key, "checked": time.strftime("%Y-%m-%dT%H:%M:%S")}))
+        tmp.write_text(json.dumps({"version": _STAMP_VERSION, "signatures": keep}, indent=0))
         os.replace(tmp, path)
     except OSError:  # a read-only data set: checked again next time
         pass
