@@ -104,3 +104,22 @@ def test_bad_input_is_one_line_before_any_work(args, needle):
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith("pcrcg.benchmarks.speed: error: ") and needle in lines[0]
     assert not Path("/nonexistent/x.db").exists()
+
+
+def test_evaluation_before_and_after_register_every_pair_alike(tiny_root, tmp_path):
+    """The evaluation section's two registrations (every row matched, no pruning / the defaults) on a tiny
+    model's outputs give the same transforms at every N, and the section reports every N in wall and CPU."""
+    from conftest import compose
+    from pcrcg.benchmarks.evaluation import infer_outputs, registration_speed
+    from pcrcg.config import N_POINTS
+    from pcrcg.models.train import load_module, train
+
+    cfg = compose("run", ["profile=tiny", "logger=none", f"data.root={tiny_root}", "trainer.max_steps=2",
+                          "trainer.limit_val_batches=1", "trainer.progress_bar=false"])
+    ckpt = train(cfg, data_root=tiny_root, out_dir=tmp_path / "run", device="cpu")["checkpoint"]
+    outs, wall, cpu = infer_outputs(load_module(ckpt, "cpu"), str(tiny_root), 1)
+    assert len(outs) == 2 and wall > 0 and cpu > 0
+    got = registration_speed(outs, 0.12, max_validation=100)
+    assert got["identical"] is True
+    for k in ("before", "after", "before_cpu", "after_cpu"):
+        assert list(got[k]) == list(N_POINTS) and all(v > 0 for v in got[k].values())

@@ -31,9 +31,9 @@ import numpy as np
 from pcrcg.config import N_POINTS
 
 
-def infer_outputs(module, root: str, pairs: int, memo_bytes: int | None = None) -> tuple[list, float]:
-    """The model's outputs on the first ``pairs`` pairs of each test benchmark of ``root`` and the seconds per
-    pair (data + network). For a deep-feature model the 2D maps are reused up to ``memo_bytes`` (0: computed
+def infer_outputs(module, root: str, pairs: int, memo_bytes: int | None = None) -> tuple[list, float, float]:
+    """The model's outputs on the first ``pairs`` pairs of each test benchmark of ``root`` and the wall and
+    process CPU seconds per pair (data + network). For a deep-feature model the 2D maps are reused up to ``memo_bytes`` (0: computed
     on every pair's views; None: the default bound), from an empty memo."""
     import itertools
 
@@ -43,10 +43,11 @@ def infer_outputs(module, root: str, pairs: int, memo_bytes: int | None = None) 
     if getattr(extractor, "kind", None) == "deep":
         extractor.memo_bytes = memo_bytes
         extractor._deep_memo.clear()  # a new bound starts from an empty memo
-    got, t0 = [], time.perf_counter()
+    got, t0, c0 = [], time.perf_counter(), time.process_time()
     for b in ("3DMatch", "3DLoMatch"):
         got += list(itertools.islice(infer(module, root, b, max_pairs=pairs, progress=False), pairs))
-    return got, (time.perf_counter() - t0) / max(len(got), 1)
+    n = max(len(got), 1)
+    return got, (time.perf_counter() - t0) / n, (time.process_time() - c0) / n
 
 
 # the two budgets timed: the run's default (Open3D 0.10) and registration=early_exit
@@ -57,8 +58,9 @@ def registration_speed(outs: list, distance: float, max_validation: int | None =
                        score: str = "overlap") -> dict:
     """Seconds per pair of registration (sampling, matching, RANSAC) at every N of the protocol on the
     outputs ``outs`` (:func:`infer_outputs`), before (every sampled row matched, no pruning) and after (the
-    defaults): ``{"before": {N: s}, "after": {N: s}, "identical": bool}`` (same transforms, correspondences and
-    RANSAC counts on every pair and N)."""
+    defaults): ``{"before": {N: s}, "after": {N: s}, "before_cpu": {N: s}, "after_cpu": {N: s}, "identical":
+    bool}`` (wall, and this process's CPU seconds, steadier on a shared machine; identical: same transforms,
+    correspondences and RANSAC counts on every pair and N)."""
     import pcrcg.registration.feature_registration as P
     from pcrcg.evaluation.model import as_fragment
     from pcrcg.registration.feature_registration import RegistrationConfig, pair_seed, register_features
@@ -75,17 +77,19 @@ def registration_speed(outs: list, distance: float, max_validation: int | None =
         try:
             cfg = RegistrationConfig(fewer_points="with_replacement", ransac=RansacConfig(
                 distance=distance, max_validation=max_validation, confidence=confidence, prune=new, score=score))
-            per_n, res = {}, []
+            per_n, cpu_n, res = {}, {}, []
             for n in N_POINTS:
-                t = time.perf_counter()
+                t, c = time.perf_counter(), time.process_time()
                 for o in outs:
                     r = register_features(as_fragment(o.src), as_fragment(o.tgt), n, cfg,
                                           seed=pair_seed(0, o.scene, o.i, o.j, n))
                     res.append((r.transform, r.correspondences, r.ransac.iterations, r.ransac.n_checked))
                 per_n[n] = (time.perf_counter() - t) / len(outs)
+                cpu_n[n] = (time.process_time() - c) / len(outs)
         finally:
             P.match_descriptors = plain
-        seconds["after" if new else "before"], results[new] = per_n, res
+        tag = "after" if new else "before"
+        seconds[tag], seconds[f"{tag}_cpu"], results[new] = per_n, cpu_n, res
     same = all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2:] == b[2:]
                for a, b in zip(results[False], results[True]))
     return {**seconds, "identical": bool(same)}
@@ -94,12 +98,14 @@ def registration_speed(outs: list, distance: float, max_validation: int | None =
 def print_registration(name: str, got: dict) -> None:
     """The per-N table of :func:`registration_speed`'s result."""
     print(f"\n{name}; identical results: {got['identical']}")
-    print("     N   before s/pair   after s/pair   speed-up")
+    print("     N   before s/pair   after s/pair   speed-up   |   CPU before   CPU after   speed-up")
     for n in N_POINTS:
-        b0, b1 = got["before"][n], got["after"][n]
-        print(f"{n:6d} {b0:15.3f} {b1:14.3f} {b0 / b1:9.2f}x")
+        b0, b1, c0, c1 = got["before"][n], got["after"][n], got["before_cpu"][n], got["after_cpu"][n]
+        print(f"{n:6d} {b0:15.3f} {b1:14.3f} {b0 / b1:9.2f}x   | {c0:12.3f} {c1:11.3f} {c0 / c1:9.2f}x")
     s0, s1 = sum(got["before"].values()), sum(got["after"].values())
-    print(f"  all {len(N_POINTS)} N: {s0:.3f} -> {s1:.3f} s/pair ({s0 / s1:.2f}x)")
+    c0, c1 = sum(got["before_cpu"].values()), sum(got["after_cpu"].values())
+    print(f"  all {len(N_POINTS)} N: {s0:.3f} -> {s1:.3f} s/pair ({s0 / s1:.2f}x); CPU {c0:.3f} -> {c1:.3f} s/pair "
+          f"({c0 / c1:.2f}x)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -122,8 +128,8 @@ def main(argv: list[str] | None = None) -> None:
     bound = extractor.memo_bytes if deep else None  # the checkpoint's encoder2d.memo_mb, else DEEP_MEMO_BYTES
 
     if deep:  # before: the 2D encoder on every pair's views; after: each view's map once (eval mode)
-        before, t_before = infer_outputs(module, args.root, args.pairs, 0)
-    outs, t_after = infer_outputs(module, args.root, args.pairs, bound)
+        before, t_before, _ = infer_outputs(module, args.root, args.pairs, 0)
+    outs, t_after, _ = infer_outputs(module, args.root, args.pairs, bound)
     if deep:
         same = all(np.array_equal(getattr(a, f).descriptors, getattr(b, f).descriptors)
                    and np.array_equal(getattr(a, f).overlap, getattr(b, f).overlap)
