@@ -122,6 +122,7 @@ def _input_files(layout: Layout, fragments: Mapping[str, set[int]]):
     files: list[Path] = []
     frames: list[tuple[str, str, int, Path]] = []
     intrinsics: list[Path] = []
+    listed: dict[Path, list[int]] = {}  # a sequence's frame ids, listed once for all its fragments
     for scene in sorted(fragments):
         seqs: dict[str, set[int]] = {}
         for i in sorted(fragments[scene]):
@@ -137,7 +138,9 @@ def _input_files(layout: Layout, fragments: Mapping[str, set[int]]):
             need = {fi.first_frame, fi.last_frame, (fi.first_frame + fi.last_frame) // 2}
             seqs.setdefault(fi.seq, set()).update(need)
             seq_dir = layout.rgbd_dir(scene) / fi.seq
-            seqs[fi.seq].update(k for k in frame_ids(seq_dir) if fi.first_frame <= k <= fi.last_frame)
+            if seq_dir not in listed:
+                listed[seq_dir] = frame_ids(seq_dir)
+            seqs[fi.seq].update(k for k in listed[seq_dir] if fi.first_frame <= k <= fi.last_frame)
         if seqs:
             k = layout.intrinsics(scene)
             if not k.is_file():
