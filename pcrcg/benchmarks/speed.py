@@ -3,7 +3,7 @@ per pair at every N before and after the exact shortcuts, and a whole run's stag
 day the speed work began (prints figures; asserts nothing).
 
     python -m pcrcg.benchmarks.speed [--profile cpu] [--colors none,deep] [--checkpoint CKPT]
-        [--run] [--store URI [--code-version V]] [--pairs 4] [--eval-pairs 4] [--reps 2] [--skip train,eval]
+        [--run [--cold]] [--store URI [--code-version V]] [--pairs 4] [--eval-pairs 4] [--reps 2] [--skip train,eval]
 
 1. **Training step**, old (KPConv implementation ``dense``: the previous gathers, norms, attention and losses,
    kept callable) against new (today's default), interleaved step by step, wall and process CPU, with the
@@ -21,7 +21,7 @@ day the speed work began (prints figures; asserts nothing).
      checkpoint folder and an output folder of its own (a temporary folder, removed after): nothing of the
      repository's ``checkpoints/`` or MLflow store is read or written, but for the Pri3D weights a deep run
      loads (the default file; missing: the deep run is skipped, with the command that makes them) and the
-     2D match cache (``cache/``, as the run finds it);
+     2D match cache (``cache/matches``, as the run finds it: a sweep's runs share it; ``--cold``: an empty one);
    * ``--store``: reads the finished runs of a store instead (the newest per experiment, features and RANSAC
      ranking; ``--code-version``: only that code's) and scales their CPU per training step and per evaluated
      pair to the reference workload. A full run caches the neighbour pyramids over 12 epochs, which the
@@ -159,9 +159,10 @@ def pri3d_weights(profile: str) -> Path:
     return path if path.is_absolute() else REPO / path
 
 
-def reference_run(profile: str, color: str, tmp: Path) -> tuple[dict[str, Any] | None, str]:
-    """Runs the reference workload for ``color`` in ``tmp`` (its own store, checkpoints and outputs) and
-    returns its :func:`stage_rows` row and a one-line account (the failure's tail when it failed)."""
+def reference_run(profile: str, color: str, tmp: Path, cold: bool = False) -> tuple[dict[str, Any] | None, str]:
+    """Runs the reference workload for ``color`` in ``tmp`` (its own store, checkpoints and outputs; ``cold``:
+    its own empty 2D match cache too, else the repository's as the run finds it) and returns its
+    :func:`stage_rows` row and a one-line account (the failure's tail when it failed)."""
     over = [f"profile={profile}", f"profile.train.max_epochs={REFERENCE['epochs']}",
             f"eval.max_pairs={REFERENCE['max_pairs']}", "runtime.report_on_end=false",
             "runtime.reuse_checkpoints=false", f"paths.checkpoints={tmp / 'checkpoints'}",
@@ -172,6 +173,8 @@ def reference_run(profile: str, color: str, tmp: Path) -> tuple[dict[str, Any] |
             return None, (f"skipped: no Pri3D weights at {weights} (make them: python -m pcrcg.pretrain2d "
                           f"profile={profile})")
         over.append(f"encoder2d.weights={weights}")
+        if cold:
+            over.append(f"matcher2d.cache_dir={tmp / f'matches-{color}'}")
     uri = f"sqlite:///{tmp / 'speed.db'}"
     res = _child([sys.executable, "-m", "pcrcg.run", *over], env={"MLFLOW_TRACKING_URI": uri})
     if res.returncode != 0:
@@ -228,6 +231,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--checkpoint", default=None, help="a trained model for the evaluation section")
     p.add_argument("--root", default=None, help="its test data (default: data/synthmatch-<profile>)")
     p.add_argument("--run", action="store_true", help="run the reference workload per color (minutes each)")
+    p.add_argument("--cold", action="store_true", help="with --run: an empty 2D match cache (LightGlue runs on "
+                   "every view pair) instead of cache/matches as found")
     p.add_argument("--store", default=None, help="read whole runs' stages from this tracking store instead")
     p.add_argument("--code-version", default=None, help="with --store: only this code version's runs")
     p.add_argument("--pairs", type=int, default=4, help="training pairs timed per step")
@@ -275,7 +280,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.run:
         with tempfile.TemporaryDirectory(prefix="pcrcg-speed-") as tmp:
             for c in colors:
-                row, how = reference_run(args.profile, c, Path(tmp))
+                row, how = reference_run(args.profile, c, Path(tmp), args.cold)
                 print(f"  color={c}: {how}")
                 if row:
                     _print_stages(row, "run here")
