@@ -123,3 +123,13 @@ def test_evaluation_before_and_after_register_every_pair_alike(tiny_root, tmp_pa
     assert got["identical"] is True
     for k in ("before", "after", "before_cpu", "after_cpu"):
         assert list(got[k]) == list(N_POINTS) and all(v > 0 for v in got[k].values())
+
+
+def test_ransac_lines_say_which_n_meet_the_target():
+    from pcrcg.benchmarks.speed import ransac_lines
+
+    rows = [{"n_points": 5000, "same_ours_s": 0.03, "same_ours_rr": 68.8, "same_open3d_s": 0.12, "same_open3d_rr": 72.9},
+            {"n_points": 500, "same_ours_s": 0.03, "same_ours_rr": 78.1, "same_open3d_s": 0.06, "same_open3d_rr": 76.0}]
+    lines = ransac_lines(rows)
+    assert lines[2] == "| 5000 | 0.0300 | 68.8 | 0.1200 | 72.9 | 4.0x | met (>= 3x) |"
+    assert lines[3].endswith("| 2.0x | missed (>= 3x) |")

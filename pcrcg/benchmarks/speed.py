@@ -3,7 +3,7 @@ per pair at every N before and after the exact shortcuts, and a whole run's stag
 day the speed work began (prints figures; asserts nothing).
 
     python -m pcrcg.benchmarks.speed [--profile cpu] [--colors none,deep] [--checkpoint CKPT]
-        [--run [--cold]] [--store URI [--code-version V]] [--pairs 4] [--eval-pairs 4] [--reps 2] [--skip train,eval]
+        [--run [--cold]] [--store URI [--code-version V]] [--pairs 4] [--eval-pairs 4] [--reps 2] [--skip train,eval] [--ransac]
 
 1. **Training step**, old (KPConv implementation ``dense``: the previous gathers, norms, attention and losses,
    kept callable) against new (today's default), interleaved step by step, wall and process CPU, with the
@@ -30,6 +30,9 @@ day the speed work began (prints figures; asserts nothing).
 4. **The summary**: the reference day's seconds, today's, the speed-up and the target (a third of the day's
    time geometry-only, half of it with deep color), met or missed. CPU seconds are what a run costs on a
    core of its own; wall seconds on a shared machine add the time it waited for one.
+5. **RANSAC against Open3D** (``--ransac``): both on identical correspondences at confidence 0.999, per N, with
+   their recalls (``python -m pcrcg.benchmarks.registration --identical-only``: ``--ransac-pairs`` pairs x
+   ``--ransac-seeds`` seeds), and whether ours is at least :data:`RANSAC_TARGET` times as fast.
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ COLOR_OVERRIDES = {
     "deep": ["features=deep", "encoder2d=pri3d", "projection=explicit", "matcher2d=lightglue"],
 }
 STAGES = ("prepare", "check_inputs", "train", "evaluate", "total")
+RANSAC_TARGET = 3.0  # ours at least this many times as fast as Open3D's RANSAC on identical correspondences
 
 
 def _child(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
@@ -224,6 +228,17 @@ def summary(rows: dict[str, dict[str, float]]) -> list[str]:
     return lines
 
 
+def ransac_lines(rows: Sequence[dict[str, Any]], target: float = RANSAC_TARGET) -> list[str]:
+    """The RANSAC table from :func:`pcrcg.benchmarks.registration.main`'s rows: per N our and Open3D's seconds
+    and recalls on identical correspondences, Open3D / ours, and the target met or missed."""
+    lines = ["| N | ours s | ours RR % | Open3D s | Open3D RR % | Open3D / ours | target |", "|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        ratio = r["same_open3d_s"] / r["same_ours_s"]
+        lines.append(f"| {r['n_points']} | {r['same_ours_s']:.4f} | {r['same_ours_rr']:.1f} | {r['same_open3d_s']:.4f} | "
+                     f"{r['same_open3d_rr']:.1f} | {ratio:.1f}x | {'met' if ratio >= target else 'missed'} (>= {target:g}x) |")
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(prog="python -m pcrcg.benchmarks.speed", description=__doc__.split("\n")[0])
     p.add_argument("--profile", default="cpu")
@@ -239,6 +254,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--eval-pairs", type=int, default=4, help="test pairs per benchmark timed in evaluation")
     p.add_argument("--reps", type=int, default=2)
     p.add_argument("--skip", default="", help="train and/or eval")
+    p.add_argument("--ransac", action="store_true", help="also RANSAC against Open3D on identical correspondences")
+    p.add_argument("--ransac-pairs", type=int, default=32)
+    p.add_argument("--ransac-seeds", type=int, default=3)
     args = p.parse_args(argv)
 
     from pcrcg.errors import ConfigError
@@ -303,6 +321,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if out["summary"]:
         print("\n4. Summary (the reference day's figures: pcrcg.benchmarks.speed.REFERENCE; the paper's ranking)")
         print("\n".join(summary(out["summary"])))
+    if args.ransac:
+        from pcrcg.benchmarks.registration import main as registration_main
+
+        print(f"\n5. RANSAC against Open3D on identical correspondences ({args.ransac_pairs} pairs x {args.ransac_seeds} "
+              "seeds, confidence 0.999)")
+        got = registration_main(["--identical-only", "--pairs", str(args.ransac_pairs), "--seeds", str(args.ransac_seeds)])
+        out["ransac"] = got["rows"]
+        print("\n".join(ransac_lines(got["rows"])))
     print("\n@@" + json.dumps(out, default=str))
     return out
 
