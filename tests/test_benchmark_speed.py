@@ -96,9 +96,12 @@ def test_a_deep_reference_run_without_pri3d_weights_is_skipped_with_the_command(
     (["--colors", "none,bogus"], "--colors"),
     (["--checkpoint", "/nonexistent/model.ckpt"], "/nonexistent/model.ckpt"),
     (["--store", "sqlite:////nonexistent/x.db"], "/nonexistent/x.db"),
+    (["--eval-pairs", "0"], "--eval-pairs"),
+    (["--skip", "trian"], "--skip"),
 ])
 def test_bad_input_is_one_line_before_any_work(args, needle):
-    proc = subprocess.run([sys.executable, "-m", "pcrcg.benchmarks.speed", *args, "--skip", "train,eval"],
+    skip = [] if "--skip" in args else ["--skip", "train,eval"]
+    proc = subprocess.run([sys.executable, "-m", "pcrcg.benchmarks.speed", *args, *skip],
                           capture_output=True, text=True, timeout=120)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr

@@ -265,6 +265,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     for c in colors:
         if c not in COLOR_OVERRIDES:
             raise ConfigError("--colors", c, " | ".join(COLOR_OVERRIDES))
+    for name in ("pairs", "eval_pairs", "reps", "ransac_pairs", "ransac_seeds"):
+        if getattr(args, name) < 1:
+            raise ConfigError("--" + name.replace("_", "-"), getattr(args, name), "an integer >= 1")
+    bad = [k for k in args.skip.split(",") if k and k not in ("train", "eval")]
+    if bad:
+        raise ConfigError("--skip", args.skip, "train and/or eval, comma-separated")
     if args.checkpoint and not Path(args.checkpoint).is_file():
         raise ConfigError("--checkpoint", args.checkpoint, "an existing model.ckpt")
     if args.store:
