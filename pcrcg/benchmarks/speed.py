@@ -121,16 +121,16 @@ def stage_rows(uri: str, code: str | None = None) -> list[dict[str, Any]]:
 
     require_store(uri)
     c = client(uri)
-    exps = [e.experiment_id for e in c.search_experiments()]
+    names = {e.experiment_id: e.name for e in c.search_experiments()}
     newest: dict[tuple[str, str, str], dict[str, Any]] = {}
-    for r in c.search_runs(exps, filter_string="attributes.status = 'FINISHED'", max_results=50000,
+    for r in c.search_runs(list(names), filter_string="attributes.status = 'FINISHED'", max_results=50000,
                            order_by=["attributes.start_time DESC"]):
         m, p = r.data.metrics, r.data.params
         if "time/train_s" not in m or (code and r.data.tags.get(TAG_CODE) != code):
             continue
         if p.get("method", "learned") != "learned" or "train/global_step" not in m:
             continue
-        exp = c.get_experiment(r.info.experiment_id).name
+        exp = names[r.info.experiment_id]
         key = (exp, p.get("features.name", "none"), p.get("registration.ransac.score", "overlap"))
         if key in newest:
             continue

@@ -499,8 +499,8 @@ class _GridOverlapScore(_PrunedOverlapScore):
                 high: np.ndarray, level: int) -> np.ndarray:
         """Exact counts (g,) of hypotheses ``group`` (g,) whose *in* points weigh ``low`` (g,) and *in* + *maybe*
         points ``high`` (g,) (:meth:`_bounds`), their *maybe* points ``maybe`` (g, n) bool decided by the KD-tree
-        chunk by chunk (the chunks of :class:`_PrunedOverlapScore`, in its shuffled point order); -1 for a hypothesis dropped on the way, once
-        even all its undecided points could not bring it level with ``level`` (a count that is reached). Most
+        chunk by chunk (the chunks of :class:`_PrunedOverlapScore`, in its shuffled point order); -1 for a
+        hypothesis dropped on the way, once even all its undecided points could not bring it level with ``level`` (a count that is reached). Most
         queried hypotheses lose: on 12 pairs of the cpu profile at the five N, 96% of the *maybe* points that
         were queried all at once belonged to hypotheses that could not be chosen; chunk by chunk half as many
         points are queried (3.5M against 6.9M). The points are transformed as the reference scorer transforms
