@@ -203,6 +203,37 @@ def test_pyramid_cache_memory_and_disk(tmp_path, room):
             np.testing.assert_array_equal(x, y)
 
 
+def test_pyramid_cache_file_of_other_points_is_built_again(tmp_path, room):
+    """A data set made again at the same root: same key, other points. The file made from the old points
+    is not used; it is overwritten, and the new points' file is then read."""
+    from pcrcg.models.kpconv.pyramid import points_fingerprint
+
+    spec = PyramidSpec(0.15, 2, 2.5, (20, 20))
+    key = ("root", "scene", 3, spec.key())
+    moved = room + np.array([0.05, 0.0, 0.0], dtype=room.dtype)
+    calls = []
+
+    def get(cache, pts):
+        return cache.get(key, lambda: (calls.append(1), build_pyramid(pts, spec))[1], lambda: points_fingerprint(pts))
+
+    get(PyramidCache(maxsize=4, directory=tmp_path), room)
+    fresh = get(PyramidCache(maxsize=4, directory=tmp_path), moved)  # a new process, regenerated data
+    assert len(calls) == 2
+    np.testing.assert_array_equal(fresh.points[0], build_pyramid(moved, spec).points[0])
+    again = PyramidCache(maxsize=4, directory=tmp_path)
+    get(again, moved)
+    assert len(calls) == 2 and again.hits == 1
+    assert points_fingerprint(room) != points_fingerprint(moved)
+    # the training collate passes the points' fingerprint: a data set made again at the same root is rebuilt
+    from pcrcg.models.datamodule import PairCollate
+
+    for pts in (room, moved):
+        col = PairCollate(spec, 0.1, cache=PyramidCache(0, tmp_path / "collate"), root="root")
+        np.testing.assert_array_equal(col.pyramid("scene", 3, pts).points[0], build_pyramid(pts, spec).points[0])
+    other = np.float32 if room.dtype == np.float64 else np.float64
+    assert points_fingerprint(room) != points_fingerprint(room.astype(other))  # the same numbers, other bytes
+
+
 def test_stack_pair_offsets_and_shadows():
     rng = np.random.default_rng(5)
     spec = PyramidSpec(0.1, 2, 2.5, (16, 16))

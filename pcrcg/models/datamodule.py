@@ -48,6 +48,7 @@ from pcrcg.models.kpconv.pyramid import (
     build_pyramid,
     calibrate_limits,
     fragment_rng,
+    points_fingerprint,
     stack_pair,
 )
 
@@ -213,7 +214,8 @@ class PairCollate:
         if frag < 0 or not scene:  # anonymous cloud: no caching
             return build_pyramid(points, self.spec, rng, self.workers)
         return self.cache.get((self.root, scene, int(frag), self.spec.key()),
-                              lambda: build_pyramid(points, self.spec, rng, self.workers))
+                              lambda: build_pyramid(points, self.spec, rng, self.workers),
+                              lambda: points_fingerprint(points))
 
     def __call__(self, samples: Sequence[PairSample]) -> PairBatch:
         if len(samples) != 1:

@@ -193,7 +193,11 @@ class PyramidCache:
     """LRU cache of fragment pyramids in memory, optionally mirrored to ``directory`` as ``.npz``.
 
     Keys are any hashable (e.g. ``(root, scene, fragment, spec.key())``); pyramids are stored in
-    the fragment's own frame.
+    the fragment's own frame. A key names a fragment, not its content: a data set made again at the
+    same root gives other points under the same key. :meth:`get`'s ``source`` (the
+    :func:`points_fingerprint` of the points the pyramid is built from) is stored beside a file's
+    pyramid and checked when the file is read, so a file made from other points is built again and
+    overwritten instead of being used (the memory cache lives as long as one process's data).
     """
 
     def __init__(self, maxsize: int = 512, directory: str | Path | None = None):
@@ -207,17 +211,21 @@ class PyramidCache:
         h = hashlib.sha1(repr(key).encode()).hexdigest()[:20]
         return self.directory / f"pyr_{h}.npz"
 
-    def get(self, key: Hashable, build: Callable[[], FragmentPyramid]) -> FragmentPyramid:
+    def get(self, key: Hashable, build: Callable[[], FragmentPyramid],
+            source: Callable[[], str] | None = None) -> FragmentPyramid:
+        """The pyramid under ``key``: from memory, else from its file (when the file's stored source equals
+        ``source()``, or both have none), else ``build()`` (then written to the file)."""
         if key in self._mem:
             self._mem.move_to_end(key)
             self.hits += 1
             return self._mem[key]
-        pyr = self._load(key) if self.directory else None
+        src = source() if (source is not None and self.directory) else ""
+        pyr = self._load(key, src) if self.directory else None
         if pyr is None:
             self.misses += 1
             pyr = build()
             if self.directory:
-                self._save(key, pyr)
+                self._save(key, pyr, src)
         else:
             self.hits += 1
         if self.maxsize > 0:
@@ -226,7 +234,7 @@ class PyramidCache:
                 self._mem.popitem(last=False)
         return pyr
 
-    def _save(self, key: Hashable, pyr: FragmentPyramid) -> None:
+    def _save(self, key: Hashable, pyr: FragmentPyramid, source: str = "") -> None:
         path = self._path(key)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}
@@ -234,10 +242,10 @@ class PyramidCache:
             for i, a in enumerate(getattr(pyr, name)):
                 arrays[f"{name}_{i}"] = a
         tmp = path.with_suffix(f".tmp-{os.getpid()}-{secrets.token_hex(4)}.npz")  # no global random state drawn
-        np.savez(tmp, key=np.array(repr(key)), **arrays)
+        np.savez(tmp, key=np.array(repr(key)), source=np.array(source), **arrays)
         tmp.replace(path)
 
-    def _load(self, key: Hashable) -> FragmentPyramid | None:
+    def _load(self, key: Hashable, source: str = "") -> FragmentPyramid | None:
         path = self._path(key)
         if not path.is_file():
             return None
@@ -245,11 +253,22 @@ class PyramidCache:
             with np.load(path, allow_pickle=False) as z:  # a cache file never runs code: a bad one is rebuilt
                 if str(z["key"]) != repr(key):
                     return None
+                stored = str(z["source"]) if "source" in z.files else ""
+                if stored != source:  # made from other points
+                    return None
                 get = lambda name: [z[k] for k in sorted((k for k in z.files if k.startswith(name + "_")),  # noqa: E731
                                                          key=lambda s: int(s.rsplit("_", 1)[1]))]
                 return FragmentPyramid(get("points"), get("neighbors"), get("pools"), get("upsamples"))
         except (OSError, ValueError, KeyError):
             return None
+
+
+def points_fingerprint(points: np.ndarray) -> str:
+    """A digest of a cloud's coordinates (N, 3): its shape, dtype and bytes (~1 ms for 100k points)."""
+    a = np.ascontiguousarray(points)
+    h = hashlib.blake2b(f"{a.shape}{a.dtype.str}".encode(), digest_size=16)
+    h.update(a.data)
+    return h.hexdigest()
 
 
 def fragment_rng(key: Sequence[object]) -> np.random.Generator:
