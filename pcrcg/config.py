@@ -18,6 +18,7 @@ the allowed values:
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -511,6 +512,21 @@ def _non_negative(setting: str, value: Any) -> None:
         raise ConfigError(setting, value, "a number >= 0")
 
 
+def _folder_to_write(setting: str, value: Any) -> None:
+    """null, or a folder that is there or can be made: no file in its place or above it, and the nearest
+    folder above it that is there can be written (checked at the start, not when the first file is saved)."""
+    if value is None:
+        return
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(setting, value, "a folder path or null")
+    path = Path(value).expanduser().absolute()
+    there = next(p for p in (path, *path.parents) if p.exists())
+    if not there.is_dir():
+        raise ConfigError(setting, value, f"a folder path or null ({there} is a file)")
+    if not os.access(there, os.W_OK | os.X_OK):
+        raise ConfigError(setting, value, f"a folder this user can write ({there} is not writable)")
+
+
 def _batches(setting: str, value: Any) -> None:
     """Lightning's ``limit_*_batches``: a fraction in (0, 1] or a count >= 1 (null: all)."""
     if value is None:
@@ -547,6 +563,7 @@ GROUP_RULES: dict[str, Any] = {
     "trainer.checkpoint_every_n_steps": _optional_int_at_least(1),
     "trainer.num_workers": lambda k, v: _int_at_least(k, v, 0),
     "trainer.num_threads": _optional_int_at_least(1),
+    "trainer.cache_dir": _folder_to_write,
     "trainer.optim.momentum": _unit_interval,
     "trainer.optim.weight_decay": _non_negative,
     "trainer.optim.lr_decay": _fraction,

@@ -92,6 +92,27 @@ def test_a_deep_reference_run_without_pri3d_weights_is_skipped_with_the_command(
     assert not (tmp_path / "speed.db").exists()
 
 
+def test_a_cold_reference_run_keeps_its_matches_and_pyramids_apart(tmp_path, monkeypatch):
+    """``--cold``: the run gets an empty 2D match cache and pyramid folder of its own; without it the
+    repository's, as the run finds them (the profile's defaults: nothing about them on the command line)."""
+    import subprocess
+
+    weights = tmp_path / "pri3d.pth"
+    weights.write_bytes(b"")
+    monkeypatch.setattr(speed, "pri3d_weights", lambda profile: weights)
+    seen = []
+    monkeypatch.setattr(speed, "_child", lambda cmd, env=None: seen.append(cmd) or subprocess.CompletedProcess(
+        cmd, 1, "", "stopped by the test"))
+    for color in ("none", "deep"):
+        for cold in (False, True):
+            row, how = speed.reference_run("cpu", color, tmp_path, cold=cold)
+            assert row is None and how == "failed (exit 1): stopped by the test"
+    given = [{a.split("=", 1)[0]: a.split("=", 1)[1] for a in cmd if "=" in a} for cmd in seen]
+    assert [g.get("trainer.cache_dir") for g in given] == [None, str(tmp_path / "pyramids-none"), None,
+                                                          str(tmp_path / "pyramids-deep")]
+    assert [g.get("matcher2d.cache_dir") for g in given] == [None, None, None, str(tmp_path / "matches-deep")]
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--colors", "none,bogus"], "--colors"),
     (["--checkpoint", "/nonexistent/model.ckpt"], "/nonexistent/model.ckpt"),

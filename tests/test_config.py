@@ -247,3 +247,17 @@ def test_the_data_code_version_is_written_once_for_every_data_option():
         own = yaml.safe_load(path.read_text())
         assert "version" not in own, f"{path.name} writes data.version itself"
         assert load_run_config([f"data={path.stem}", "profile=tiny"], validate=False).data.version == GENERATOR_VERSION
+
+
+def test_a_pyramid_cache_folder_that_cannot_be_written_is_refused_at_the_start(conf, tmp_path):
+    """trainer.cache_dir (the profile's pyramid_cache): a file in its place or above it is refused with the
+    setting named, before any work; a folder that is not there yet is fine (made when the first pyramid is saved)."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    for bad in (str(blocker), str(blocker / "pyramids")):
+        err = _error(conf, ["profile=tiny", f"trainer.cache_dir={bad}"])
+        assert err.setting == "trainer.cache_dir" and "is a file" in err.allowed
+    err = _error(conf, ["profile=tiny", f"profile.train.pyramid_cache={blocker}"])  # the setting the user gave
+    assert err.setting == "profile.train.pyramid_cache" and "is a file" in err.allowed
+    cfg = load_run_config(["profile=tiny", f"trainer.cache_dir={tmp_path / 'not' / 'yet'}"], conf)
+    assert cfg.trainer.cache_dir.endswith("not/yet") and not (tmp_path / "not").exists()

@@ -265,10 +265,11 @@ def test_how_many_processes_and_threads_do_the_work_and_where_pyramids_are_kept_
 
     base = load_run_config(["profile=tiny"])
     how = load_run_config(["profile=tiny", "data.workers=1", "trainer.num_threads=2", "profile.train.num_threads=2",
-                           "registration.ransac.threads=2", "trainer.cache_dir=cache/pyramids"])
+                           "registration.ransac.threads=2", "profile.train.pyramid_cache=cache/pyramids"])
     a, b = flat_params(base), flat_params(how)
     assert {k for k in a if a[k] != b[k]} == {"data.workers", "trainer.num_threads", "profile.train.num_threads",
-                                              "registration.ransac.threads", "trainer.cache_dir"}
+                                              "registration.ransac.threads", "trainer.cache_dir",
+                                              "profile.train.pyramid_cache"}
     for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
         assert config_hash(how, exclude) == config_hash(base, exclude)
     # the loader processes draw the training augmentations: their number changes the model

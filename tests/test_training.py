@@ -290,6 +290,14 @@ def test_best_checkpoint_round_trip_and_inference(tmp_path, toy_root):
     bench = list(predict_benchmark(None, toy_root, best, "3DMatch", device="cpu", progress=False))
     assert [(b.scene, b.i, b.j) for b in bench] == [("toy0", 0, 1), ("toy1", 0, 1)]
     np.testing.assert_allclose(bench[0].tgt.descriptors, o.tgt.descriptors, atol=1e-5)
+    # with trainer.cache_dir the test pyramids are kept on disk, and read back as they were built
+    kept = tmp_path / "pyramids"
+    for _ in range(2):
+        cached = list(predict_benchmark({"trainer": {"cache_dir": str(kept)}}, toy_root, best, "3DMatch",
+                                        device="cpu", progress=False))
+        assert len(list(kept.glob("pyr_*.npz"))) == 4  # two pairs of two fragments
+        for b, c in zip(bench, cached):
+            np.testing.assert_array_equal(b.src.descriptors, c.src.descriptors)
     # user clouds, and the .npz hand-over to the registration stage
     oc = infer_clouds(module, s.src_points, s.tgt_points)
     np.testing.assert_allclose(oc.src.descriptors, o.src.descriptors, atol=1e-5)

@@ -20,8 +20,10 @@ day the speed work began (prints figures; asserts nothing).
      profile's 150 batches, and 90 + 90 test pairs) per color with ``python -m pcrcg.run``, in a store, a
      checkpoint folder and an output folder of its own (a temporary folder, removed after): nothing of the
      repository's ``checkpoints/`` or MLflow store is read or written, but for the Pri3D weights a deep run
-     loads (the default file; missing: the deep run is skipped, with the command that makes them) and the
-     2D match cache (``cache/matches``, as the run finds it: a sweep's runs share it; ``--cold``: an empty one);
+     loads (the default file; missing: the deep run is skipped, with the command that makes them), the
+     2D match cache (``cache/matches``) and the neighbour pyramids kept between runs (the profile's
+     ``train.pyramid_cache``, ``cache/pyramids`` at the cpu profile), both as the run finds them (a sweep's runs
+     share them; ``--cold``: empty ones of its own);
    * ``--store``: reads the finished runs of a store instead (the newest per experiment, features and RANSAC
      ranking; ``--code-version``: only that code's) and scales their CPU per training step and per evaluated
      pair to the reference workload. A full run caches the neighbour pyramids over 12 epochs, which the
@@ -165,7 +167,7 @@ def pri3d_weights(profile: str) -> Path:
 
 def reference_run(profile: str, color: str, tmp: Path, cold: bool = False) -> tuple[dict[str, Any] | None, str]:
     """Runs the reference workload for ``color`` in ``tmp`` (its own store, checkpoints and outputs; ``cold``:
-    its own empty 2D match cache too, else the repository's as the run finds it) and returns its
+    its own empty 2D match cache and pyramid folder too, else the repository's as the run finds them) and returns its
     :func:`stage_rows` row and a one-line account (the failure's tail when it failed)."""
     over = [f"profile={profile}", f"profile.train.max_epochs={REFERENCE['epochs']}",
             f"eval.max_pairs={REFERENCE['max_pairs']}", "runtime.report_on_end=false",
@@ -179,6 +181,8 @@ def reference_run(profile: str, color: str, tmp: Path, cold: bool = False) -> tu
         over.append(f"encoder2d.weights={weights}")
         if cold:
             over.append(f"matcher2d.cache_dir={tmp / f'matches-{color}'}")
+    if cold:
+        over.append(f"trainer.cache_dir={tmp / f'pyramids-{color}'}")
     uri = f"sqlite:///{tmp / 'speed.db'}"
     res = _child([sys.executable, "-m", "pcrcg.run", *over], env={"MLFLOW_TRACKING_URI": uri})
     if res.returncode != 0:
@@ -247,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--root", default=None, help="its test data (default: data/synthmatch-<profile>)")
     p.add_argument("--run", action="store_true", help="run the reference workload per color (minutes each)")
     p.add_argument("--cold", action="store_true", help="with --run: an empty 2D match cache (LightGlue runs on "
-                   "every view pair) instead of cache/matches as found")
+                   "every view pair) and pyramid folder instead of cache/matches and cache/pyramids as found")
     p.add_argument("--store", default=None, help="read whole runs' stages from this tracking store instead")
     p.add_argument("--code-version", default=None, help="with --store: only this code version's runs")
     p.add_argument("--pairs", type=int, default=4, help="training pairs timed per step")

@@ -7,7 +7,8 @@
 frame), the data set's ``transform`` (src -> tgt) and ``color_coverage`` (nan without color).
 
 Everything the model needs (sizes, neighbour limits, the projection settings) comes from the
-checkpoint; ``cfg`` is accepted for the interface and not needed.
+checkpoint. From ``cfg`` only ``trainer.cache_dir`` is read: where the fragments' neighbour pyramids are
+kept between runs (none: built in memory), shared with training.
 """
 
 from __future__ import annotations
@@ -24,4 +25,6 @@ def predict_benchmark(cfg: Any, data_root: str | Path, checkpoint: str | Path, b
                       progress: bool = True) -> Iterator[PairOutput]:
     """Outputs of every pair of ``benchmark`` (``3DMatch`` / ``3DLoMatch``) of the data at ``data_root``."""
     module = load_module(checkpoint, device=None if device in (None, "auto") else device)
-    yield from infer(module, data_root, benchmark, max_pairs=max_pairs, progress=progress)
+    trainer = (cfg.get("trainer") if hasattr(cfg, "get") else None) or {}
+    yield from infer(module, data_root, benchmark, max_pairs=max_pairs, progress=progress,
+                     cache_dir=trainer.get("cache_dir"))

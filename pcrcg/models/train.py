@@ -464,13 +464,15 @@ def inference_datamodule(module: PCRCGModule, root: str | Path | None, **kw: Any
 
 
 def infer(model: str | Path | PCRCGModule, root: str | Path, split: str, device: str | torch.device | None = None,
-          max_pairs: int | None = None, progress: bool = True) -> Iterator[PairOutput]:
-    """Per-pair outputs (each fragment in its own frame) for ``split`` of the data set at ``root``."""
+          max_pairs: int | None = None, progress: bool = True, cache_dir: str | Path | None = None
+          ) -> Iterator[PairOutput]:
+    """Per-pair outputs (each fragment in its own frame) for ``split`` of the data set at ``root``
+    (``cache_dir``: the neighbour pyramids' folder kept between runs, ``trainer.cache_dir``)."""
     from tqdm import tqdm
 
     module = model if isinstance(model, PCRCGModule) else load_module(model, device)
     module.eval()
-    dm = inference_datamodule(module, root)
+    dm = inference_datamodule(module, root, cache_dir=cache_dir)
     ds = dm.dataset(split)
     collate = dm.collate(train=False)
     chosen = list(range(len(ds))) if max_pairs is None else evenly(list(range(len(ds))), int(max_pairs))

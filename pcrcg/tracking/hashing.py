@@ -20,13 +20,15 @@ from omegaconf import DictConfig, OmegaConf
 # keys that do not change what a run computes
 # (profile.pretrain2d: the 2D pretraining's own sizes; a run reads only the weights file it is given;
 # data.workers, trainer.num_threads (and the profile's value it follows), registration.ransac.threads: how many
-# processes / CPU threads do the work; encoder2d.memo_mb: how much memory reuses 2D maps; trainer.cache_dir: where
-# the neighbour pyramids are kept between runs (the same pyramids, read instead of built). trainer.num_workers
+# processes / CPU threads do the work; encoder2d.memo_mb: how much memory reuses 2D maps; trainer.cache_dir (and
+# the profile's value it follows): where the neighbour pyramids are kept between runs (the same pyramids, read
+# instead of built). trainer.num_workers
 # stays, so that hashes match older stores', though since EpochSampler it changes no result: code before it drew
 # the augmentations in the loader processes)
 HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d",
                                  "data.workers", "trainer.num_threads", "profile.train.num_threads",
-                                 "registration.ransac.threads", "encoder2d.memo_mb", "trainer.cache_dir")
+                                 "registration.ransac.threads", "encoder2d.memo_mb", "trainer.cache_dir",
+                                 "profile.train.pyramid_cache")
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 # settings that only a color run reads (the 2D encoder, the matcher, the projection and what it lifts): a learned
