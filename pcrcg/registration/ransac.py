@@ -333,10 +333,14 @@ class _GridOverlapScore(_PrunedOverlapScore):
     (CPU only). Exact: a hypothesis that can still be chosen gets its exact count, and the hypotheses of
     the batch's top count their exact summed squared distances; a hypothesis that cannot win gets -1.
 
-    The target's bounding box (grown by ``distance``) is cut into cubic cells of edge ``distance / 4``
+    The target's bounding box (grown by ``distance``) is cut into cubic cells of edge ``distance / 6``
     (coarser, down to ``distance / 2``, for a box too large for ``MAX_CELLS``); until ``FINE_AFTER``
-    hypotheses have been scored, of ``distance / 3`` (fewer cells to mark, more points left to the KD-tree:
-    faster for the few dozen hypotheses of a run with Open3D's early exit, slower for Open3D 0.10's 1,000).
+    hypotheses have been scored, of ``distance / 5`` (fewer cells to mark, more points left to the KD-tree).
+    Finer cells leave fewer points *maybe* and cost more to mark: on 8 + 8 cpu-profile pairs at the five N
+    (a geometry-only checkpoint of the record, 2026-12-06, beside two sweep jobs, CPU s per pair for all N,
+    three interleaved rounds), Open3D 0.10's budget took 0.452 s with cells of distance / 4 (/ 3 until
+    ``FINE_AFTER``), 0.417 with / 6 (/ 5), 0.414 with / 7 (/ 5), 0.438 with / 8 (/ 6); Open3D's early exit
+    0.208, 0.210 and 0.211 with / 4 (/ 3), / 6 (/ 5) and / 6 (/ 3). The chosen transforms were the same in all.
     A cell is *in* when a target point lies in a cell so near that every point of both cells is closer
     than ``distance`` (so every point of the cell is an inlier), *out* when no target point lies in a
     cell whose nearest point could be within ``distance`` (every point of the cell is an outlier), and
@@ -353,10 +357,10 @@ class _GridOverlapScore(_PrunedOverlapScore):
     add nothing). :func:`_overlap_scorer` uses it where the grid has at most ``MAX_CELLS`` cells.
     """
 
-    CELLS_PER_DISTANCE = 4
-    COARSE_CELLS_PER_DISTANCE = 3  # until FINE_AFTER hypotheses have been scored
+    CELLS_PER_DISTANCE = 6
+    COARSE_CELLS_PER_DISTANCE = 5  # until FINE_AFTER hypotheses have been scored
     FINE_AFTER = 128
-    MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 5 x 5 x 2.7 m in cells of 1/4 of Predator's 5 cm
+    MAX_CELLS = 1 << 26  # 64 MiB of int8: a box of about 3.3 m a side in cells of 1/6 of Predator's 5 cm (larger: coarser)
     GROW = 0.5  # metres around the central 99 % of the target points, for a box too large for MAX_CELLS
     TOP = 8  # hypotheses counted exactly first, to raise the bar for the others
     WARM = 0  # hypotheses scored by the chunked scorer before the grid is built (16 was slower on the benchmark)
