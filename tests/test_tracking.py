@@ -442,3 +442,22 @@ def test_a_run_that_reads_no_seed_is_one_run_whatever_the_seed():
     assert _tags(cfg, to_plain(cfg), "h", job)["seed_independent"] == "true"
     cfg = load_run_config(["profile=tiny", "method=fpfh"])
     assert "seed_independent" not in _tags(cfg, to_plain(cfg), "h", job)
+
+
+def test_runs_of_stores_from_before_the_pyramid_folder_keep_their_hashes():
+    """Until the pyramid folder existed every config had ``trainer.cache_dir: null`` and no
+    ``profile.train.pyramid_cache``: such a config hashes as today's (the cpu profile keeps its pyramids in
+    cache/pyramids), so the finished runs of older stores are still found."""
+    from pcrcg.config import load_run_config
+    from pcrcg.tracking.hashing import HASH_EXCLUDE, to_plain
+
+    cfg = load_run_config(["profile=cpu"])
+    assert cfg.trainer.cache_dir == "cache/pyramids"
+    old = to_plain(cfg)
+    del old["profile"]["train"]["pyramid_cache"]
+    old["trainer"]["cache_dir"] = None
+    new_keys = ("trainer.cache_dir", "profile.train.pyramid_cache")
+    for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
+        before = tuple(k for k in exclude if k not in new_keys)  # how the code before the folder hashed
+        assert config_hash(cfg, exclude) == config_hash(old, before) == config_hash(old, exclude)
+    assert "cache_dir" in to_plain(cfg)["trainer"]  # the hashed copy is changed, not the config

@@ -22,13 +22,16 @@ from omegaconf import DictConfig, OmegaConf
 # data.workers, trainer.num_threads (and the profile's value it follows), registration.ransac.threads: how many
 # processes / CPU threads do the work; encoder2d.memo_mb: how much memory reuses 2D maps; trainer.cache_dir (and
 # the profile's value it follows): where the neighbour pyramids are kept between runs (the same pyramids, read
-# instead of built). trainer.num_workers
+# instead of built; hashed as null, NEUTRAL below). trainer.num_workers
 # stays, so that hashes match older stores', though since EpochSampler it changes no result: code before it drew
 # the augmentations in the loader processes)
 HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d",
                                  "data.workers", "trainer.num_threads", "profile.train.num_threads",
                                  "registration.ransac.threads", "encoder2d.memo_mb", "trainer.cache_dir",
                                  "profile.train.pyramid_cache")
+# excluded keys that older configs had with one value for every run: hashed with that value instead of left out,
+# so that the runs of older stores keep their hashes (trainer.cache_dir was null until it was excluded)
+NEUTRAL: dict[str, Any] = {"trainer.cache_dir": None}
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 # settings that only a color run reads (the 2D encoder, the matcher, the projection and what it lifts): a learned
@@ -50,7 +53,8 @@ def to_plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
 
 
 def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
-    """A copy of the nested plain config ``data`` without the dotted keys (``a.b``) of ``exclude``."""
+    """A copy of the nested plain config ``data`` without the dotted keys (``a.b``) of ``exclude`` (those of
+    :data:`NEUTRAL` that it has are set to their neutral value instead)."""
     out = json.loads(json.dumps(data, default=str))
     for key in exclude:
         *parents, last = key.split(".")
@@ -59,8 +63,11 @@ def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
             node = node.get(p) if isinstance(node, dict) else None
             if node is None:
                 break
-        if isinstance(node, dict):
-            node.pop(last, None)
+        if isinstance(node, dict) and last in node:
+            if key in NEUTRAL:
+                node[last] = NEUTRAL[key]
+            else:
+                del node[last]
     return out
 
 
