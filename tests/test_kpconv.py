@@ -234,6 +234,20 @@ def test_pyramid_cache_file_of_other_points_is_built_again(tmp_path, room):
     assert points_fingerprint(room) != points_fingerprint(room.astype(other))  # the same numbers, other bytes
 
 
+def test_a_pyramid_cache_that_cannot_be_written_warns_once_and_builds(tmp_path, room, monkeypatch):
+    spec = PyramidSpec(0.15, 2, 2.5, (20, 20))
+    cache = PyramidCache(maxsize=0, directory=tmp_path)
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.warns(UserWarning, match="not written") as caught:
+        for frag in range(3):
+            cache.get(("root", "scene", frag, spec.key()), lambda: build_pyramid(room, spec))
+    assert len(caught) == 1 and cache.misses == 3 and not list(tmp_path.iterdir())
+
+
 def test_stack_pair_offsets_and_shadows():
     rng = np.random.default_rng(5)
     spec = PyramidSpec(0.1, 2, 2.5, (16, 16))

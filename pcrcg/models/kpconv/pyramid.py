@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import os
 import secrets
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -205,6 +206,7 @@ class PyramidCache:
         self.directory = Path(directory) if directory else None
         self._mem: OrderedDict[Hashable, FragmentPyramid] = OrderedDict()
         self.hits = self.misses = 0
+        self._warned = False
 
     def _path(self, key: Hashable) -> Path:
         assert self.directory is not None
@@ -235,15 +237,24 @@ class PyramidCache:
         return pyr
 
     def _save(self, key: Hashable, pyr: FragmentPyramid, source: str = "") -> None:
+        """Writes the file whole, then renames it into place. A cache that cannot be written (a full disk) is
+        not an error: the run goes on building its pyramids, with one warning."""
         path = self._path(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}
         for name in ("points", "neighbors", "pools", "upsamples"):
             for i, a in enumerate(getattr(pyr, name)):
                 arrays[f"{name}_{i}"] = a
         tmp = path.with_suffix(f".tmp-{os.getpid()}-{secrets.token_hex(4)}.npz")  # no global random state drawn
-        np.savez(tmp, key=np.array(repr(key)), source=np.array(source), **arrays)
-        tmp.replace(path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(tmp, key=np.array(repr(key)), source=np.array(source), **arrays)
+            tmp.replace(path)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            if not self._warned:
+                self._warned = True
+                warnings.warn(f"pyramid cache {self.directory}: not written ({exc}); pyramids are built instead",
+                              stacklevel=2)
 
     def _load(self, key: Hashable, source: str = "") -> FragmentPyramid | None:
         path = self._path(key)
