@@ -43,7 +43,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.device import torch_threads
+from pcrcg.device import cpu_threads
 from pcrcg.errors import ConfigError, DataError, PcrcgError
 from pcrcg.evaluation.pairs import OWN_ESTIMATES
 
@@ -386,8 +386,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     from pcrcg.cli import one_line_errors
 
-    # the profile's torch threads, as a run's stages use them (the same inference, at the same speed)
-    with one_line_errors("pcrcg.evaluate"), torch_threads(OmegaConf.select(cfg, "profile.train.num_threads")):
+    # the profile's threads (torch's and the native pools'), as a run's stages use them (the same speed)
+    with one_line_errors("pcrcg.evaluate"), cpu_threads(OmegaConf.select(cfg, "profile.train.num_threads")):
         result = run(cfg)  # bad input: one line naming the file or setting, exit 2
     from pcrcg.cli import strict_json
 

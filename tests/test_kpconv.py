@@ -96,6 +96,20 @@ def test_grid_subsample_barycentres():
     np.testing.assert_allclose(out[np.argmin(out[:, 0])], [0.02, 0.02, 0.01], atol=1e-6)
 
 
+def test_grid_subsample_sums_in_point_order():
+    """The per-axis bincount sums are np.add.at's (the previous code): the same barycentres bit for bit."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-2.0, 3.0, size=(20000, 3)) * rng.uniform(0.5, 1.5, size=(20000, 1))
+    cell = np.floor(pts / 0.07).astype(np.int64)
+    cell -= cell.min(axis=0)
+    dims = cell.max(axis=0) + 1
+    _, inverse, counts = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2],
+                                   return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, pts)
+    assert np.array_equal(grid_subsample(pts, 0.07), (sums / counts[:, None]).astype(np.float32))
+
+
 def test_radius_neighbors_against_brute_force():
     rng = np.random.default_rng(3)
     s = rng.uniform(0, 1, (200, 3))

@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
-from test_run_support import FAKES, expected_rr, make_conf, read_status_files, run_cli, tracked_runs
+from test_run_support import FAKES, expected_rr, make_conf, native_threads, read_status_files, run_cli, tracked_runs
 
 N_POINTS = (5000, 2500, 1000, 500, 250)
 BENCHES = ("3DMatch", "3DLoMatch")
@@ -206,24 +206,28 @@ def test_without_tracking(tmp_path, monkeypatch):
     assert (tmp_path / "out" / "pcrcg_status.json").is_file()
 
 
-def test_every_stage_runs_with_the_trainers_torch_threads(tmp_path, monkeypatch):
+def test_every_stage_runs_with_the_trainers_threads(tmp_path, monkeypatch):
     """A run whose training is skipped (a reused checkpoint, here a fake train stage that sets nothing)
-    still evaluates with ``trainer.num_threads`` (the tiny profile's 1), and the caller's number is back
-    afterwards; ``null`` leaves torch's setting alone."""
+    still evaluates with ``trainer.num_threads`` (the tiny profile's 1), torch's and the native pools'
+    (OpenBLAS, OpenMP) alike, and the caller's numbers are back afterwards; ``null`` leaves them alone."""
+    import numpy as np  # noqa: F401  (NumPy's and SciPy's OpenBLAS loaded, so that their pools are set here)
+    import scipy.linalg  # noqa: F401
     import torch
+    from threadpoolctl import threadpool_limits
 
     conf = make_conf(tmp_path / "conf")
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        for k, threads in enumerate(("1", "null")):
-            args = ["--config-path", str(conf), "logger=none", "profile=tiny", *FAKES[:2],
-                    "stages.evaluate=test_run_support.threads_evaluate", f"profile.train.num_threads={threads}",
-                    f"hydra.run.dir={tmp_path}/out{k}"]
-            assert run_cli(args, tmp_path, monkeypatch) == 0
-            assert torch.get_num_threads() == 2
-        assert (tmp_path / "eval_threads.txt").read_text().split() == ["1", "2"]
+        with threadpool_limits(limits=2):  # every native pool at 2, whatever the environment set
+            for k, threads in enumerate(("1", "null")):
+                args = ["--config-path", str(conf), "logger=none", "profile=tiny", *FAKES[:2],
+                        "stages.evaluate=test_run_support.threads_evaluate", f"profile.train.num_threads={threads}",
+                        f"hydra.run.dir={tmp_path}/out{k}"]
+                assert run_cli(args, tmp_path, monkeypatch) == 0
+                assert torch.get_num_threads() == 2 and native_threads() == "2"
+        assert (tmp_path / "eval_threads.txt").read_text().splitlines() == ["1 1", "2 2"]
     finally:
         torch.set_num_threads(before)
 

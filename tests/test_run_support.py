@@ -65,12 +65,20 @@ def fake_train(ctx: RunContext) -> TrainOutput:
 
 
 def threads_evaluate(ctx: RunContext) -> EvalOutput:
-    """:func:`fake_evaluate`, after writing the torch CPU threads it runs with to ``eval_threads.txt``."""
+    """:func:`fake_evaluate`, after writing the torch CPU threads it runs with and the native pools' (OpenBLAS,
+    OpenMP: :func:`native_threads`) to ``eval_threads.txt``."""
     import torch
 
     with open(ctx.job.base_dir / "eval_threads.txt", "a") as f:
-        f.write(f"{torch.get_num_threads()}\n")
+        f.write(f"{torch.get_num_threads()} {native_threads()}\n")
     return fake_evaluate(ctx)
+
+
+def native_threads() -> str:
+    """The threads of every native pool loaded in this process (OpenBLAS, OpenMP, ...), distinct values joined."""
+    from threadpoolctl import threadpool_info
+
+    return ",".join(str(v) for v in sorted({int(p["num_threads"]) for p in threadpool_info()}))
 
 
 def expected_rr(window_size: int, seed: int, n: int, benchmark: str) -> float:

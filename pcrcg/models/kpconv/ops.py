@@ -26,37 +26,48 @@ def grid_subsample(points: np.ndarray, voxel: float) -> np.ndarray:
     dims = cell.max(axis=0) + 1
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, pts)
+    # per axis, the cell sums in point order (np.add.at's order and float64 sums: the same barycentres bit for
+    # bit, in ~80% of its time)
+    sums = np.stack([np.bincount(inverse, weights=pts[:, c], minlength=len(counts)) for c in range(3)], axis=1)
     return (sums / counts[:, None]).astype(np.float32)
 
 
+def support_tree(supports: np.ndarray) -> cKDTree:
+    """The k-d tree of supports (N, 3) that :func:`radius_neighbors` and :func:`nearest_neighbor` search
+    (build it once for several searches of the same supports)."""
+    return cKDTree(np.asarray(supports, dtype=np.float64))
+
+
 def radius_neighbors(
-    queries: np.ndarray, supports: np.ndarray, radius: float, max_neighbors: int, workers: int = 1
+    queries: np.ndarray, supports: np.ndarray, radius: float, max_neighbors: int, workers: int = 1,
+    tree: cKDTree | None = None,
 ) -> np.ndarray:
     """Indices of the supports within ``radius`` of each query, nearest first.
 
     queries (M, 3), supports (N, 3) -> (M, H) int64 with H = min(max_neighbors, the largest count),
     padded with N (shadow). A query has at most ``max_neighbors`` neighbours (the farthest are dropped).
+    ``tree``: :func:`support_tree` of these supports, when the caller has it.
     """
     n = len(supports)
     k = int(max(1, min(max_neighbors, n)))
     if len(queries) == 0 or n == 0:
         return np.full((len(queries), 1), n, dtype=np.int64)
-    tree = cKDTree(np.asarray(supports, dtype=np.float64))
+    tree = tree if tree is not None else support_tree(supports)
     _, idx = tree.query(np.asarray(queries, dtype=np.float64), k=k, distance_upper_bound=radius, workers=workers)
     idx = np.asarray(idx, dtype=np.int64).reshape(len(queries), k)
     width = int(max(1, (idx < n).sum(axis=1).max()))
     return np.ascontiguousarray(idx[:, :width])
 
 
-def nearest_neighbor(queries: np.ndarray, supports: np.ndarray, workers: int = 1) -> np.ndarray:
-    """Index of the nearest support of each query: (M, 1) int64 (N when there are no supports)."""
+def nearest_neighbor(queries: np.ndarray, supports: np.ndarray, workers: int = 1,
+                     tree: cKDTree | None = None) -> np.ndarray:
+    """Index of the nearest support of each query: (M, 1) int64 (N when there are no supports).
+    ``tree``: :func:`support_tree` of these supports, when the caller has it."""
     n = len(supports)
     if n == 0 or len(queries) == 0:
         return np.full((len(queries), 1), n, dtype=np.int64)
-    _, idx = cKDTree(np.asarray(supports, dtype=np.float64)).query(np.asarray(queries, dtype=np.float64), k=1,
-                                                                   workers=workers)
+    tree = tree if tree is not None else support_tree(supports)
+    _, idx = tree.query(np.asarray(queries, dtype=np.float64), k=1, workers=workers)
     return np.asarray(idx, dtype=np.int64).reshape(-1, 1)
 
 

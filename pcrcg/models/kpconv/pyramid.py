@@ -30,7 +30,7 @@ from typing import Callable, Hashable, Iterable, Sequence
 import numpy as np
 import torch
 
-from pcrcg.models.kpconv.ops import grid_subsample, nearest_neighbor, neighbor_counts, radius_neighbors
+from pcrcg.models.kpconv.ops import grid_subsample, nearest_neighbor, neighbor_counts, radius_neighbors, support_tree
 
 
 @dataclass(frozen=True)
@@ -97,12 +97,15 @@ def build_pyramid(points: np.ndarray, spec: PyramidSpec, rng: np.random.Generato
     pts = level_points(points, spec, rng)
     neighbors, pools, ups = [], [], []
     i32 = lambda a: a.astype(np.int32)  # noqa: E731  (halves the cache; widened when stacked)
+    # one k-d tree per level, searched by its own points, the next level's (pooling) and the previous
+    # level's (upsampling): the same searches as one tree per search
+    trees = [support_tree(p) for p in pts]
     for layer, p in enumerate(pts):
         r = spec.radius(layer)
-        neighbors.append(i32(radius_neighbors(p, p, r, spec.limit(layer), workers)))
+        neighbors.append(i32(radius_neighbors(p, p, r, spec.limit(layer), workers, trees[layer])))
         if layer + 1 < len(pts):
-            pools.append(i32(radius_neighbors(pts[layer + 1], p, r, spec.limit(layer), workers)))
-            ups.append(i32(nearest_neighbor(p, pts[layer + 1], workers)))
+            pools.append(i32(radius_neighbors(pts[layer + 1], p, r, spec.limit(layer), workers, trees[layer])))
+            ups.append(i32(nearest_neighbor(p, pts[layer + 1], workers, trees[layer + 1])))
     return FragmentPyramid(pts, neighbors, pools, ups)
 
 
