@@ -50,7 +50,7 @@ def cpu_threads(n: int | None, device: Any = None) -> Iterator[None]:
 
     Why: with torch at one thread, the registration's NumPy products still ran OpenBLAS and OpenMP on every core.
     On this 2-core machine that spent CPU without saving time: a cpu-profile evaluation of 30 + 30 pairs
-    (2026-12-06, ``python -m pcrcg.evaluate mode=benchmark``) took 49-58 s of CPU (37-44 s wall) with the
+    (2026-12-06, ``python -m pcrcg.evaluate mode=benchmark``) took 49-59 s of CPU (36-44 s wall) with the
     default pools and 38-45 s (38-45 s wall) with them at one thread, the same estimates bit for bit; a whole
     reference run's evaluation (``python -m pcrcg.benchmarks.speed --run``) 127 s of CPU (90 s wall) unpinned
     against 76 s pinned to one core (``taskset -c 0``)."""
