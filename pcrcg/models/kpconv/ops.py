@@ -75,16 +75,16 @@ def neighbor_counts(queries: np.ndarray, supports: np.ndarray, radius: float, wo
     """Number of supports within ``radius`` of each query: (M,) int64 (for calibrating limits)."""
     if len(supports) == 0:
         return np.zeros(len(queries), np.int64)
-    tree = cKDTree(np.asarray(supports, dtype=np.float64))
-    return np.asarray(tree.query_ball_point(np.asarray(queries, dtype=np.float64), radius, return_length=True,
-                                            workers=workers), dtype=np.int64)
+    counts = support_tree(supports).query_ball_point(np.asarray(queries, dtype=np.float64), radius,
+                                                     return_length=True, workers=workers)
+    return np.asarray(counts, dtype=np.int64)
 
 
 def radius_pairs(src: np.ndarray, tgt: np.ndarray, radius: float) -> np.ndarray:
     """All pairs (a, b) with |src[a] - tgt[b]| < radius: (C, 2) int64, sorted by (a, b)."""
     if len(src) == 0 or len(tgt) == 0:
         return np.zeros((0, 2), np.int64)
-    ts, tt = cKDTree(np.asarray(src, np.float64)), cKDTree(np.asarray(tgt, np.float64))
+    ts, tt = support_tree(src), support_tree(tgt)
     coo = ts.sparse_distance_matrix(tt, radius, output_type="ndarray")
     pairs = np.stack([coo["i"], coo["j"]], axis=1).astype(np.int64)
     if len(pairs):
