@@ -45,7 +45,7 @@ from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_ord
                                     select_columns)
 from pcrcg.report.spec import Column, Comparison, Row, TableSpec, report_where, run_command, with_defaults
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
-from pcrcg.report.tables import FilledTable, _paper_value, fill_table, run_code
+from pcrcg.report.tables import FilledTable, _paper_value, fill_table, paper_values, run_code
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
 NOT_RESOLVED = "not resolved"
@@ -457,9 +457,10 @@ def _fill(finding: Finding, benchmark: str, runs: pd.DataFrame, paper: pd.DataFr
     table = fill_table(_table(finding, benchmark), runs, paper if paper is not None else pd.DataFrame(
         columns=["table", "method", "variant", "benchmark", "metric", "n_points", "value"]), profiles, identity)
     if paper is not None:  # each row's number from its own paper table
+        paper_at = paper_values(paper)
         for cell in table.cells:
             sel = finding.selection(cell.row.label)
-            cell.paper = _paper_value(paper, sel.paper_table, cell.row, cell.col) if sel.paper_table else None
+            cell.paper = _paper_value(paper_at, sel.paper_table, cell.row, cell.col) if sel.paper_table else None
     if finding.has_single:
         table.orderings = _single_orderings(finding, table, benchmark, source, settings)
     else:

@@ -52,6 +52,10 @@ def load_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
     if df.empty:
         return pd.DataFrame(columns=[*RUN_COLUMNS, "experiment"])
     df["experiment"] = df["experiment_id"].map(ids)
+    # text columns as Python objects, not pandas 3's Arrow-backed strings: a report selects rows of this wide
+    # frame (hundreds of params and tags) once per table cell, and each selection copies every column: 3x
+    # faster on object columns (a 40 x 350 frame: 3.6 against 10.8 ms per selection)
+    df = df.astype({c: object for c in df.columns if isinstance(df[c].dtype, pd.StringDtype)})
     return df.sort_values("start_time").reset_index(drop=True)
 
 

@@ -130,17 +130,17 @@ def match(runs: pd.DataFrame, where: Mapping[str, Any]) -> pd.Series:
     return mask
 
 
-def _get(rec: pd.Series, col: str, default: str = "?") -> str:
+def _get(rec: Mapping[str, Any], col: str, default: str = "?") -> str:
     v = rec.get(col)
     return default if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)
 
 
-def _ref(rec: pd.Series) -> RunRef:
+def _ref(rec: Mapping[str, Any]) -> RunRef:
     return RunRef(str(rec["run_id"]), _get(rec, "tags.config_hash"), _get(rec, "tags.git_sha"),
                   _get(rec, "tags.profile"), _get(rec, "params.seed"), _seedless(rec))
 
 
-def _seedless(rec: pd.Series) -> bool:
+def _seedless(rec: Mapping[str, Any]) -> bool:
     """The run's ``seed_independent`` tag; a run logged before the tag: the same rule on its params."""
     from pcrcg.config import seed_independent
 
@@ -150,15 +150,28 @@ def _seedless(rec: pd.Series) -> bool:
     return bool(method and init) and seed_independent({"method": method, "icp_init": init})
 
 
-def _paper_value(paper: pd.DataFrame, table: str, row: Row, col: Column) -> float | None:
+PaperKey = tuple[Any, Any, Any, Any, Any, "float | None"]
+
+
+def paper_values(paper: pd.DataFrame) -> dict[PaperKey, float]:
+    """The paper's numbers by (table, method, variant, benchmark, metric, n_points), the first row of each key
+    (``n_points`` a float, None where the paper gives none); a key with a missing text field selects nothing."""
+    out: dict[PaperKey, float] = {}
+    if paper.empty:
+        return out
+    cols = ["table", "method", "variant", "benchmark", "metric", "n_points", "value"]
+    for *text, n, value in paper[cols].itertuples(index=False, name=None):
+        if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in text):
+            continue
+        n = None if n is None or (isinstance(n, float) and math.isnan(n)) else float(n)
+        out.setdefault((*text, n), float(value))
+    return out
+
+
+def _paper_value(values: Mapping[PaperKey, float], table: str, row: Row, col: Column) -> float | None:
     variant = col.variant or row.variant
-    sel = paper[(paper["table"] == table) & (paper["method"] == row.method) & (paper["variant"] == variant)
-                & (paper["benchmark"] == col.benchmark) & (paper["metric"] == col.metric)]
-    if col.n_points is None:
-        sel = sel[sel["n_points"].isna()]
-    else:
-        sel = sel[sel["n_points"] == col.n_points]
-    return float(sel.iloc[0]["value"]) if len(sel) else None
+    n = None if col.n_points is None else float(col.n_points)
+    return values.get((table, row.method, variant, col.benchmark, col.metric, n))
 
 
 def run_code(df: pd.DataFrame) -> pd.Series:
@@ -229,20 +242,28 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
     cells: list[Cell] = []
     coverage: dict[str, tuple[float, float, int]] = {}
     shared: list[str] = []
+    paper_at = paper_values(paper)
+    by_experiment: dict[tuple[str, str | None], pd.DataFrame] = {}
+
+    def experiment_runs(experiment: str, profile: str | None) -> pd.DataFrame:
+        if (experiment, profile) not in by_experiment:
+            by_experiment[experiment, profile] = _experiment_runs(runs, experiment, profile)
+        return by_experiment[experiment, profile]
+
     for row in spec.rows:
         exp = row.experiment or spec.experiment
         prof = profiles.get(exp)
-        base = _experiment_runs(runs, exp, prof)
+        base = experiment_runs(exp, prof)
         row_runs = base[match(base, row.where)] if row.where else (base.iloc[0:0] if row.reason else base)
         if row.same_as is not None and row.where:
-            other = _experiment_runs(runs, row.same_as.experiment, profiles.get(row.same_as.experiment, prof))
+            other = experiment_runs(row.same_as.experiment, profiles.get(row.same_as.experiment, prof))
             other = other[match(other, {**row.where, **row.same_as.where})]
             if not other.empty:
                 row_runs = pd.concat([row_runs, other])
             n_other = int((other["status"] == "FINISHED").sum()) if "status" in other.columns else 0
             shared.append(f"{row.text}: also the runs of {row.same_as.text} ({n_other} finished), the same config")
         for col in spec.columns:
-            cell = Cell(row, col, _paper_value(paper, spec.paper_table, row, col))
+            cell = Cell(row, col, _paper_value(paper_at, spec.paper_table, row, col))
             cells.append(cell)
             if row.reason and not row.where:
                 cell.reason = row.reason
@@ -255,7 +276,8 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
                     cell.reason += f"; nor of {row.same_as.text}"
                 continue
             vals, refs, keys = [], [], []
-            for _, rec in done.iterrows():
+            records = done.to_dict("records")  # (not iterrows: a Series per row of a wide frame is slow)
+            for rec in records:
                 for key in col.keys():
                     v = rec.get(f"metrics.{key}")
                     if v is not None and not (isinstance(v, float) and math.isnan(v)):
@@ -268,7 +290,7 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
             cell.keys = keys
             if not vals:
                 # (MLflow's table shows a metric that was not logged and a NaN alike)
-                cell.runs = [_ref(rec) for _, rec in done.iterrows()]
+                cell.runs = [_ref(rec) for rec in records]
                 cell.reason = _no_value_reason(done, col)
                 continue
             cell.values = vals
