@@ -15,7 +15,8 @@ import pandas as pd
 import pytest
 import torch
 
-from test_run_support import FAKES, expected_rr, make_conf, native_threads, read_status_files, run_cli, tracked_runs
+from test_run_support import (FAKES, expected_rr, make_conf, native_threads, read_status_files, run_cli, stand_in_pri3d,
+                              tracked_runs)
 
 N_POINTS = (5000, 2500, 1000, 500, 250)
 BENCHES = ("3DMatch", "3DLoMatch")
@@ -35,11 +36,9 @@ def sweep(tmp_path_factory):
             return ["--config-path", str(conf), f"+experiment={exp}", "profile=tiny", *FAKES,
                     f"hydra.sweep.dir={root}/multirun/{name}", "-m"]
 
-        # window_size runs with Pri3D weights (its caption): a stand-in torch file where the default points (the fake
-        # stages never read it); the backbone sweep below runs without it (pri3d: not run)
-        pri3d = root / "checkpoints" / "pretrain2d" / "synthmatch-seed1-tiny" / "pri3d_resnet18.pth"
-        pri3d.parent.mkdir(parents=True)
-        torch.save({"stand-in": torch.zeros(1)}, pri3d)  # a torch file: preflight reads every weights file named
+        # window_size runs with Pri3D weights (its caption): a stand-in where the default points; the backbone sweep
+        # below runs without it (pri3d: not run)
+        pri3d = stand_in_pri3d(root)
         mp.setenv("PCRCG_FAKE_FAIL", "window_size=7")
         out["rc_fail"] = run_cli(sweep_args("a"), root, mp)
         out["status_fail"] = read_status_files(root / "multirun" / "a")
@@ -240,6 +239,7 @@ def test_parallel_joblib_sweep_writes_one_store(tmp_path, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     tests_dir = str(Path(__file__).resolve().parent)
     monkeypatch.setenv("PYTHONPATH", tests_dir)
+    stand_in_pri3d(tmp_path)  # the window_size experiment's Pri3D weights (the fake stages never read them)
     args = ["--config-path", str(conf), "+experiment=window_size", "profile=tiny", *FAKES,
             "hydra/launcher=joblib2", f"hydra.sweep.dir={tmp_path}/multirun", "runtime.report_on_end=false", "-m"]
     assert run_cli(args, tmp_path, monkeypatch) == 0

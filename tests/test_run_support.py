@@ -114,6 +114,18 @@ def fake_evaluate(ctx: RunContext) -> EvalOutput:
 # --------------------------------------------------------------------------- running the CLI in-process
 
 
+def stand_in_pri3d(root: Path) -> Path:
+    """A stand-in torch file where the tiny profile's ``encoder2d=pri3d`` looks for its weights under ``root``
+    (the window_size experiment runs with Pri3D weights, its caption's; the fake stages never read them, the
+    preflight reads every weights file named)."""
+    import torch
+
+    path = root / "checkpoints" / "pretrain2d" / "synthmatch-seed1-tiny" / "pri3d_resnet18.pth"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"stand-in": torch.zeros(1)}, path)
+    return path
+
+
 def run_cli(args: Sequence[str], cwd: Path, monkeypatch) -> int:
     """``python -m pcrcg.run <args>`` inside this process (cwd = ``cwd``); returns the exit code."""
     from pcrcg import run as run_mod
