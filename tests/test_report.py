@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from pcrcg.config import CONF_DIR
 from pcrcg.report import generate_report
 from pcrcg.report.spec import parse_specs
-from pcrcg.report.tables import PAPER_CSV, load_paper
+from pcrcg.report.tables import PAPER_CSV, _paper_value, load_paper, paper_values
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 N = (5000, 2500, 1000, 500, 250)
@@ -137,6 +137,28 @@ def test_layout_follows_paper_tables_csv(store):
                         & (cells["benchmark"] == p["benchmark"]) & (cells["metric"] == p["metric"])
                         & (cells["n_points"].fillna("").astype(str).str.replace(".0", "", regex=False) == str(n))]
             assert len(hit) == 1 and hit.iloc[0]["paper"] == pytest.approx(p["value"]), (table, dict(p))
+
+
+def test_paper_values_index_each_number_by_its_cell_and_keep_the_first_of_a_key():
+    """The paper's numbers by (table, method, variant, benchmark, metric, n_points): a number of the paper per
+    cell (an integer n_points finds the CSV's float, a blank n_points is None), the first row where a key repeats,
+    and a row with a missing text field selects nothing."""
+    from pcrcg.report.spec import Column, Row
+
+    paper = pd.DataFrame({"table": ["t", "t", "t", "t", "t"], "method": ["A", "A", "A", None, "A"],
+                          "variant": ["", "", "", "", "x"], "benchmark": ["3DMatch"] * 5,
+                          "metric": ["rr", "rr", "rr", "rr", "rre"],
+                          "n_points": [5000.0, 5000.0, np.nan, 250.0, np.nan], "value": [1.0, 2.0, 3.0, 4.0, 5.0]})
+    values = paper_values(paper)
+    assert values == {("t", "A", "", "3DMatch", "rr", 5000.0): 1.0, ("t", "A", "", "3DMatch", "rr", None): 3.0,
+                      ("t", "A", "x", "3DMatch", "rre", None): 5.0}
+    row = Row(method="A")
+    assert _paper_value(values, "t", row, Column(benchmark="3DMatch", metric="rr", n_points=5000)) == 1.0
+    assert _paper_value(values, "t", row, Column(benchmark="3DMatch", metric="rr", n_points=None)) == 3.0
+    assert _paper_value(values, "t", row, Column(benchmark="3DMatch", metric="rr", n_points=250)) is None
+    assert _paper_value(values, "t", row, Column(benchmark="3DMatch", metric="rre", variant="x")) == 5.0
+    # the shipped copy: one number per key, none lost
+    assert len(paper_values(load_paper())) == len(load_paper())
 
 
 def test_markdown_columns_in_paper_order(store):
