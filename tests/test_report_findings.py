@@ -271,6 +271,23 @@ def test_findings_can_be_left_out_and_bad_specs_name_the_setting(report, tmp_pat
         parse_findings(raw)
 
 
+def test_what_differs_from_the_paper_is_said_where_a_claim_is_reversed_or_not_resolved(report, tmp_path):
+    """``findings.claims[].differs``: a paragraph under the findings for each claim that is reversed (6 here) or not
+    resolved (4), none for a claim that holds (1, 2) or is not run (3); a bad value names the setting."""
+    spec = report["result"].findings.spec
+    assert all(f.differs for f in spec.claims[:7]) and spec.claims[7].differs is None  # conf/report.yaml's
+    md = (report["out"] / "findings.md").read_text()
+    section = md.split("### Where our setting differs from the paper's", 1)[1].split("\n#", 1)[0]
+    said = [f.number for f in spec.claims if f"**{f.number}. {f.claim}**" in section]
+    assert said == [4, 6], said
+    assert f"**6. {spec.claims[5].claim}** (reversed): {spec.claims[5].differs}" in section  # no real-scene runs of it
+    assert "\n" not in spec.claims[5].differs and "  " not in spec.claims[5].differs  # the YAML's lines joined
+    raw = _cfg(tmp_path, report["uri"])["findings"]
+    raw["claims"][0]["differs"] = 5
+    with pytest.raises(ConfigError, match=r"findings.claims\[0\].differs"):
+        parse_findings(raw)
+
+
 def test_the_sweep_runs_every_rows_job_with_every_seed(tmp_path):
     env = {**os.environ, "DRY_RUN": "1", "PYTHON": str(ROOT / ".venv" / "bin" / "python"), "SHARED": str(tmp_path),
            "REAL_ROOT": str(tmp_path / "real"), "LOGS": str(tmp_path / "logs")}

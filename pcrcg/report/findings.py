@@ -89,6 +89,9 @@ class Finding:
     rows: tuple[Selection, ...]
     compare: tuple[tuple[str, str], ...]
     margin: float | None = None  # a target of the profile (findings.targets); None: a claim of the paper
+    # what in this project's setting differs from the paper's for this claim (findings.claims[].differs): shown
+    # under the findings where the claim is reversed or not resolved
+    differs: str | None = None
 
     @property
     def sign(self) -> int:
@@ -275,8 +278,13 @@ def _finding(c: Mapping[str, Any], k: int, raw: Mapping[str, Any], where: str, t
             raise ConfigError(f"{where}.margin", margin, "a non-negative number of points, e.g. 10")
         margin = float(margin)
     text = c.get("target" if target else "claim") or f"{'target' if target else 'finding'} {k}"
+    differs = c.get("differs")
+    if differs is not None and (not isinstance(differs, str) or not differs.strip()):
+        raise ConfigError(f"{where}.differs", differs,
+                          "a text (what in our setting differs from the paper's), or leave it out")
     return Finding(k, str(text), str(c.get("benchmark", raw.get("benchmark", "3DLoMatch"))),
-                   str(c.get("metric", raw.get("metric", "RR"))), sizes, expect, rows, tuple(compare), margin)
+                   str(c.get("metric", raw.get("metric", "RR"))), sizes, expect, rows, tuple(compare), margin,
+                   " ".join(differs.split()) if differs else None)
 
 
 def parse_findings(raw: Mapping[str, Any] | None, defaults: Mapping[str, Any] | None = None) -> FindingsSpec | None:
@@ -658,6 +666,22 @@ def intro(filled: FilledFindings) -> str:
             + PAPER_POSITION_TEXT + real)
 
 
+def differs_markdown(filled: FilledFindings, heading: str = "###") -> list[str]:
+    """The section on what in our setting differs from the paper's: a paragraph per claim that is reversed or not
+    resolved (ours or on the real scene) and has a ``differs`` text; [] when there is none."""
+    items = []
+    for f in filled.spec.claims:
+        verdicts = [v for v in (filled.claim_verdict(f), filled.claim_verdict(f, real=True)) if v is not None]
+        if f.differs and any(v in (REVERSED, NOT_RESOLVED) for v in verdicts):
+            items.append(f"* **{f.number}. {f.claim}** ({' / '.join(verdicts)}): {f.differs}")
+    if not items:
+        return []
+    return [f"{heading} Where our setting differs from the paper's", "",
+            "For each claim that is reversed or not resolved here (ours / the real scene): what differs between the "
+            "runs behind it and the paper's (`findings.claims[].differs` of conf/report.yaml), and what a run "
+            "closer to the paper's would be expected to change.", "", *items, ""]
+
+
 def to_markdown(filled: FilledFindings, heading: str = "##", figure: str | None = None) -> str:
     """The findings' section; ``figure``: the forest plot's file name, shown under the claims' table."""
     real = filled.spec.real is not None
@@ -679,6 +703,7 @@ def to_markdown(filled: FilledFindings, heading: str = "##", figure: str | None 
     out += ["| " + " | ".join(cells) + " |" for cells in _rows(claims, real, notes)] + [""]
     if figure:
         out += [f"![The findings: our differences with their intervals and seeds, the paper's]({figure})", ""]
+    out += differs_markdown(filled, heading + "#")
     if targets:
         out += [f"{heading}# Targets of the profile", "", TARGETS_INTRO, "",
                 "| Target | Comparison | Where | Target Δ | Ours Δ | 95% interval | Verdict |",
