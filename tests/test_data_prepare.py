@@ -72,6 +72,30 @@ def test_pair_dataset_sample(tiny_root):
     assert len(PairDataset(tiny_root, "train", n_views=0)[0].src_views) == 0
 
 
+def test_frames_only_writes_the_full_builds_frames_and_nothing_else(tiny_root, tmp_path):
+    """``data=synthmatch_pretrain`` (the 2D pretraining's rooms) renders the frames only: the same files, byte for
+    byte, as the full build of the same seed, and the splits; no fragments, pairs or benchmarks. A value that is not
+    a boolean is named before any work."""
+    root = prepare_dataset(tiny_data_cfg(tmp_path / "frames", "data=synthmatch_pretrain"), seed=0, log=lambda m: None)
+
+    def files(r, sub):
+        return sorted(p.relative_to(r) for p in (r / sub).rglob("*") if p.is_file())
+
+    ours = files(root, "rgbd")
+    assert ours == files(tiny_root, "rgbd") and len(ours) > 50
+    assert all((root / p).read_bytes() == (tiny_root / p).read_bytes() for p in ours)
+    layout, full = Layout(root), Layout(tiny_root)
+    for split in ("train", "val", "test"):
+        assert read_split(layout.split_file(split)) == read_split(full.split_file(split))
+    assert files(root, "fragments") == [] and files(root, "benchmarks") == []
+    stats = read_manifest(root)["stats"]
+    assert stats["fragments"] == 0 and stats["frames"] == read_manifest(tiny_root)["stats"]["frames"]
+    assert read_manifest(root)["params"]["frames_only"] is True
+    with pytest.raises(ConfigError, match="data.frames_only"):
+        prepare_dataset(tiny_data_cfg(tmp_path / "bad", "+data.frames_only=3"), seed=0, log=lambda m: None)
+    assert list(tmp_path.glob("bad*")) == []  # named before anything is written
+
+
 def test_reuse_and_regenerate(tiny_root, tmp_path, monkeypatch):
     before = read_manifest(tiny_root)
     again = prepare_dataset(tiny_data_cfg(tiny_root), seed=0, log=lambda m: None)

@@ -105,6 +105,8 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
     workers = data_cfg.get("workers", 1)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ConfigError("data.workers", workers, "an integer >= 1 (processes generating scenes)")
+    if _frames_only(data_cfg) and name != "synthmatch":
+        raise ConfigError("data.frames_only", True, f"false for data.name={name} (only generated data render frames)")
     root = Path(str(data_cfg["root"]))
     _remove_stale_temps(root, log)
     params = {"source": name, "version": GENERATOR_VERSION, "seed": seed,
@@ -276,9 +278,12 @@ def _prepare_synthmatch(tmp: Path, data_cfg: Mapping[str, Any], seed: int, log) 
         raise ConfigError("data.synth.n_scenes", synth.n_scenes, str(exc)) from None
     test = set(splits["test"])
     workers = max(1, int(data_cfg.get("workers", 1) or 1))
+    frames_only = _frames_only(data_cfg)
     log(f"[prepare] synthmatch: {synth.n_scenes} scenes x {synth.fragments_per_scene} fragments x "
-        f"{synth.frames_per_fragment} frames at {synth.width}x{synth.height}, {workers} worker(s) -> {tmp}")
-    args = [(str(tmp), k, seed, synth, sensor, fusion, pair_cfg, scene_name(k) in test) for k in range(synth.n_scenes)]
+        f"{synth.frames_per_fragment} frames at {synth.width}x{synth.height}, {workers} worker(s)"
+        f"{' (the frames only)' if frames_only else ''} -> {tmp}")
+    args = [(str(tmp), k, seed, synth, sensor, fusion, pair_cfg, scene_name(k) in test, frames_only)
+            for k in range(synth.n_scenes)]
     results: list[SceneResult] = []
     bar = tqdm(total=len(args), desc="scenes", unit="scene")
     if workers == 1:
@@ -299,8 +304,17 @@ def _prepare_synthmatch(tmp: Path, data_cfg: Mapping[str, Any], seed: int, log) 
     stats = _stats(results, splits)
     n_frames = synth.n_scenes * synth.fragments_per_scene * synth.frames_per_fragment
     stats["frames"] = n_frames
-    _require_benchmarks(stats, "data.synth")
+    if not frames_only:
+        _require_benchmarks(stats, "data.synth")
     return stats
+
+
+def _frames_only(data_cfg: Mapping[str, Any]) -> bool:
+    """``data.frames_only`` (absent: false): the scenes' RGB-D frames without fragments, pairs or benchmarks."""
+    value = data_cfg.get("frames_only", False)
+    if not isinstance(value, bool):
+        raise ConfigError("data.frames_only", value, "true | false")
+    return value
 
 
 def _generate_scene_star(a):

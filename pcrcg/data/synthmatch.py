@@ -167,12 +167,15 @@ def _render_attempt(layout: Layout, index: int, seed: int, cfg: SynthConfig, sen
 
 def generate_scene(
     root: str, index: int, seed: int, cfg: SynthConfig, sensor: SensorModel, fusion: FusionConfig,
-    pair_cfg: PairConfig, is_test: bool,
+    pair_cfg: PairConfig, is_test: bool, frames_only: bool = False,
 ) -> SceneResult:
-    """Render, fuse and pair one scene (a process-pool task)."""
+    """Render, fuse and pair one scene (a process-pool task); ``frames_only``: render its frames and stop (no
+    fragments, pairs or benchmark files: what the 2D pretraining reads)."""
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     layout = Layout(root)
     frame_ids = render_scene(layout, index, seed, cfg, sensor)
+    if frames_only:
+        return SceneResult(scene_name(index), 0, [])
     return build_scene(layout, scene_name(index), SEQ, frame_ids, cfg.frames_per_fragment, fusion, pair_cfg, is_test)
