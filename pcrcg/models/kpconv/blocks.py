@@ -158,14 +158,20 @@ def max_over_neighbours(x: torch.Tensor) -> torch.Tensor:
     return _MaxOverDim1.apply(x)
 
 
+def _gather_rows(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
+    """The rows of ``x`` padded with a zero shadow row: x (N, C), inds (M, H) -> (M, H, C), the values of
+    ``x_pad[inds]`` through ``index_select`` (~5x faster than advanced indexing on the CPU)."""
+    x_pad = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
+    return x_pad.index_select(0, inds.reshape(-1)).view(*inds.shape, x.shape[1])
+
+
 class _MaxPool(torch.autograd.Function):
     """Forward as :func:`max_pool_reference`; the backward adds each output's gradient to the support
     its maximum came from (the first maximum on ties, as autograd's max), without (M, H, C) tensors."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        x_pad = torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)
-        values, arg = x_pad[inds].max(dim=1)
+        values, arg = _gather_rows(x, inds).max(dim=1)
         if ctx.needs_input_grad[0]:
             ctx.save_for_backward(inds.gather(1, arg))  # (M, C): the support of each maximum
             ctx.n = x.shape[0]
@@ -189,7 +195,7 @@ def max_pool(x: torch.Tensor, inds: torch.Tensor) -> torch.Tensor:
         # off the CPU the reference: scatter_add_ is non-deterministic on CUDA, index_put_ is not
         return max_pool_reference(x, inds)
     if not (torch.is_grad_enabled() and x.requires_grad):  # inference: the values only, in one pass
-        return torch.cat([x, x.new_zeros((1, x.shape[1]))], 0)[inds].amax(dim=1)
+        return _gather_rows(x, inds).amax(dim=1)
     return _MaxPool.apply(x, inds)
 
 
