@@ -575,6 +575,7 @@ GROUP_RULES: dict[str, Any] = {
     "model.first_dim": lambda k, v: _int_at_least(k, v, 1),
     "model.final_dim": lambda k, v: _int_at_least(k, v, 1),
     "model.gnn_dim": lambda k, v: _int_at_least(k, v, 1),
+    "model.embedding_memo_mb": lambda k, v: None if v is None else _int_at_least(k, v, 0),
     "model.num_heads": lambda k, v: _int_at_least(k, v, 1),
     "model.dgcnn_k": lambda k, v: _int_at_least(k, v, 1),
     "model.max_points": lambda k, v: _int_at_least(k, v, 1),

@@ -150,6 +150,41 @@ def test_geometric_embedding_equals_the_formula_as_written_with_gradients(dtype,
         torch.testing.assert_close(emb(pts), outs[0][0], atol=tol, rtol=tol)
 
 
+def test_geometric_embedding_is_memoised_in_inference_only_and_forgotten_when_the_weights_change():
+    """Without gradients a fragment's embedding is kept (keyed by its points) and given back as computed,
+    the oldest dropped beyond ``memo_bytes``; a gradient-enabled call, new weights or memo 0 compute it."""
+    torch.manual_seed(2)
+    a, b = torch.rand(30, 3) * 2.0, torch.rand(20, 3) * 2.0
+    emb = GeometricStructureEmbedding(16, sigma_d=0.2, sigma_a=15.0, angle_k=3)
+    calls = []
+    compute = emb._embed
+    emb._embed = lambda p: calls.append(len(p)) or compute(p)  # type: ignore[method-assign]
+    with torch.no_grad():
+        ea = emb(a)
+        assert emb(a) is ea and calls == [30]  # kept: the same tensor
+        assert torch.equal(emb(a.clone()), ea) and calls == [30]  # keyed by the values, not the tensor
+        eb = emb(b)
+        assert torch.equal(eb, compute(b)) and calls == [30, 20]
+        emb.memo_bytes = ea.numel() * 4  # room for a's alone, or b's and c's
+        c = torch.rand(20, 3) * 2.0
+        emb(c)  # added: the oldest (a) goes
+        assert calls == [30, 20, 20] and len(emb._memo) == 2
+        emb(b), emb(c)
+        emb(a)  # computed again; b and c go
+        assert calls == [30, 20, 20, 30] and len(emb._memo) == 1
+        emb.memo_bytes = None
+        emb.proj_a.bias.add_(1.0)  # new weights: computed again, and different
+        assert not torch.equal(emb(a), ea) and len(calls) == 5
+    out = emb(a)  # gradients on: computed, and the memo emptied
+    assert out.requires_grad and len(calls) == 6 and not emb._memo
+    emb.memo_bytes = 0
+    with torch.no_grad():
+        emb(a), emb(a)
+    assert len(calls) == 8 and not emb._memo
+    with pytest.raises(ConfigError, match="model.embedding_memo_mb"):
+        GeoTransformerConfig.from_mapping({**_model_cfg(), "embedding_memo_mb": -1})
+
+
 def test_triplet_angles_known_values():
     # a right angle at the origin: the neighbour of p0 is p1 (distance 1), p2 lies on the y axis
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
@@ -292,6 +327,13 @@ def test_config_shares_the_backbone_settings_with_predator():
     with pytest.raises(ConfigError, match="model.sigma_a"):
         validate_run_config(compose("run", ["model=geotransformer", "profile=tiny", "model.sigma_a=-1"]))
     validate_run_config(compose("run", ["model=geotransformer", "profile=tiny"]))
+    with pytest.raises(ConfigError, match="model.embedding_memo_mb"):
+        validate_run_config(compose("run", ["model=geotransformer", "profile=tiny", "model.embedding_memo_mb=-1"]))
+    # how much memory reuses embeddings is not part of a run's identity
+    from pcrcg.pipeline import run_hash
+
+    assert run_hash(compose("run", ["model=geotransformer", "profile=tiny"])) == run_hash(
+        compose("run", ["model=geotransformer", "profile=tiny", "model.embedding_memo_mb=0"]))
     with pytest.raises(ConfigError, match="model.blocks"):
         GeoTransformerConfig.from_mapping({**geo, "blocks": ["self", "bogus"]})
 
@@ -319,6 +361,47 @@ def test_network_shapes_and_color_changes_only_the_first_layer():
     assert out.src_feats_f.shape[1] == geo.cfg.output_dim and len(out.gt_pairs) > 0
     lgr = geo.eval().register(geo(torch.ones(n0, 1), batch.pyramid))
     assert lgr.transform.shape == (4, 4) and lgr.src.shape == lgr.tgt.shape
+
+
+def test_inference_with_memoised_embeddings_gives_the_same_outputs_bit_for_bit():
+    """Pairs that share a fragment (its superpoints the same in both): the second pair reads the kept
+    embedding, and every output of the network and of LGR equals that of computing it again."""
+    import dataclasses
+
+    from pcrcg.models.datamodule import PairCollate
+    from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
+    from pcrcg.testing.pairs import toy_pair
+
+    a, b = toy_pair(0, density=60.0), toy_pair(1, density=60.0)
+    shared = dataclasses.replace(a, tgt_points=b.tgt_points)  # a's source with another target
+    spec = PyramidSpec(0.12, 3, 2.5)
+    spec = PyramidSpec(0.12, 3, 2.5, calibrate_limits([a.src_points, a.tgt_points, b.tgt_points], spec))
+    collate = PairCollate(spec, overlap_radius=0.18)
+    torch.manual_seed(0)
+    geo = build_geotransformer({**_model_cfg(), "voxel_size": 0.12}, in_dim=1).eval()
+    emb = geo.transformer.embedding
+
+    def outputs(memo_bytes):
+        emb.memo_bytes, got = memo_bytes, []
+        emb._memo.clear()
+        with torch.no_grad():
+            for s in (a, shared, a):
+                batch = collate([s])
+                out = geo(torch.ones(batch.pyramid.points[0].shape[0], 1), batch.pyramid)
+                lgr = geo.register(out)
+                got.append([v for v in (*vars(out).values(), lgr.transform, lgr.src, lgr.tgt)
+                            if isinstance(v, torch.Tensor)])
+        return got
+
+    calls = []
+    compute = emb._embed
+    emb._embed = lambda p: calls.append(len(p)) or compute(p)  # type: ignore[method-assign]
+    ref = outputs(0)
+    assert len(calls) == 6
+    got = outputs(None)
+    assert len(calls) == 6 + 3  # a's two clouds, then the new target only; the third pair all from the memo
+    assert all(len(x) == len(y) > 5 for x, y in zip(ref, got))
+    assert all(torch.equal(u, v) for x, y in zip(ref, got) for u, v in zip(x, y))
 
 
 def test_four_levels_decode_through_an_inner_level():

@@ -20,14 +20,16 @@ from omegaconf import DictConfig, OmegaConf
 # keys that do not change what a run computes
 # (profile.pretrain2d: the 2D pretraining's own sizes; a run reads only the weights file it is given;
 # data.workers, trainer.num_threads (and the profile's value it follows), registration.ransac.threads: how many
-# processes / CPU threads do the work; encoder2d.memo_mb: how much memory reuses 2D maps; trainer.cache_dir (and
+# processes / CPU threads do the work; encoder2d.memo_mb, model.embedding_memo_mb: how much memory reuses 2D maps and
+# GeoTransformer's embeddings; trainer.cache_dir (and
 # the profile's value it follows): where the neighbour pyramids are kept between runs (the same pyramids, read
 # instead of built; hashed as null, NEUTRAL below). trainer.num_workers
 # stays, so that hashes match older stores', though since EpochSampler it changes no result: code before it drew
 # the augmentations in the loader processes)
 HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", "runtime", "profile.pretrain2d",
                                  "data.workers", "trainer.num_threads", "profile.train.num_threads",
-                                 "registration.ransac.threads", "encoder2d.memo_mb", "trainer.cache_dir",
+                                 "registration.ransac.threads", "encoder2d.memo_mb", "model.embedding_memo_mb",
+                                 "trainer.cache_dir",
                                  "profile.train.pyramid_cache")
 # excluded keys that older configs had with one value for every run: hashed with that value instead of left out,
 # so that the runs of older stores keep their hashes (trainer.cache_dir was null until it was excluded)

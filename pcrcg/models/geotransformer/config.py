@@ -61,6 +61,9 @@ class GeoTransformerConfig(KPConvSettings):
     correspondence_threshold: int = 3
     acceptance_radius: float = 4.0
     refinement_steps: int = 5
+    # MB of geometric structure embeddings kept in inference (a fragment's, for its other pairs); 0: none,
+    # None: pcrcg.models.geotransformer.embedding.EMBEDDING_MEMO_BYTES. Changes no result (not hashed)
+    embedding_memo_mb: int | None = None
     loss: GeoLossConfig = field(default_factory=GeoLossConfig)
 
     def __post_init__(self) -> None:
@@ -104,6 +107,9 @@ class GeoTransformerConfig(KPConvSettings):
         for name in ("sigma_d", "sigma_a", "matching_radius", "acceptance_radius", "voxel_size"):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"model.{name}", getattr(self, name), "a positive number")
+        memo = self.embedding_memo_mb
+        if memo is not None and (isinstance(memo, bool) or not isinstance(memo, (int, float)) or memo < 0):
+            raise ConfigError("model.embedding_memo_mb", memo, "a number of megabytes >= 0 (0: no memo) or null")
         if not 0 <= self.target_overlap < 1:
             raise ConfigError("model.target_overlap", self.target_overlap, "a number in [0, 1)")
         if not float(self.loss.positive_radius) > 0:

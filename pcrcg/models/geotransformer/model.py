@@ -110,6 +110,8 @@ class GeoTransformer(nn.Module):
         self.transformer = GeometricTransformer(self.backbone.layout.dims[-1], cfg.hidden_dim, cfg.hidden_dim,
                                                 cfg.num_heads, cfg.blocks, cfg.metres(cfg.sigma_d), cfg.sigma_a,
                                                 cfg.angle_k)
+        if cfg.embedding_memo_mb is not None:
+            self.transformer.embedding.memo_bytes = int(cfg.embedding_memo_mb * 2**20)
         self.transport = LearnableOptimalTransport(cfg.sinkhorn_iterations)
 
     def forward(self, feats: torch.Tensor, pyr: TensorPyramid, transform: torch.Tensor | None = None,
