@@ -43,7 +43,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pcrcg.device import cpu_threads
+from pcrcg.device import cpu_threads, keep_freed_memory
 from pcrcg.errors import ConfigError, DataError, PcrcgError
 from pcrcg.evaluation.pairs import OWN_ESTIMATES
 
@@ -387,6 +387,7 @@ def main(cfg: DictConfig) -> None:
     from pcrcg.cli import one_line_errors
 
     # the profile's threads (torch's and the native pools'), as a run's stages use them (the same speed)
+    keep_freed_memory()
     with one_line_errors("pcrcg.evaluate"), cpu_threads(OmegaConf.select(cfg, "profile.train.num_threads")):
         result = run(cfg)  # bad input: one line naming the file or setting, exit 2
     from pcrcg.cli import strict_json

@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import (CONF_DIR, color_enabled, geometry_only, needs_training, preflight, seed_independent,
                           validate_run_config)
-from pcrcg.device import cpu_threads, resolve_device
+from pcrcg.device import cpu_threads, keep_freed_memory, resolve_device
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import (COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, data_hash, flatten,
@@ -494,6 +494,7 @@ def _execute(ctx: RunContext, data: Mapping[str, Any], h: str, name: str, clock:
         # every stage with the trainer's threads, not only training: a run that reuses a checkpoint infers with
         # the threads that a run that trains does (2 torch threads beside another job on 2 cores: PCR-CG's
         # inference 2.8x slower, its training step 26x); NumPy's and Open3D's pools too (cpu_threads)
+        keep_freed_memory()  # large tensors reuse the heap instead of fresh pages every step (pcrcg.device)
         with sigterm_as_interrupt(), cpu_threads(OmegaConf.select(cfg, "trainer.num_threads"), ctx.device):
             if tracker is not None:
                 run_id = ctx.run_id = tracker.start(name, _tags(cfg, data, h, job))

@@ -354,6 +354,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     import torch
 
     torch.set_num_threads(int(args["threads"]))
+    from pcrcg.device import keep_freed_memory
+
+    keep_freed_memory()  # the heap as a run keeps it (PCRCG_MALLOC=default: glibc's own settings)
     if args["child"]:
         row = bench_profile(args["profiles"][0], int(args["pairs"]), int(args["reps"]), str(args["device"]),
                             args["root"], str(args["color"]), bool(args["breakdown"]), str(args["models"][0]),

@@ -34,7 +34,7 @@ import torch
 
 from pcrcg.config import OPTIMIZERS
 from pcrcg.data.layout import Layout
-from pcrcg.device import resolve_device
+from pcrcg.device import keep_freed_memory, resolve_device
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.fields import lookup
 from pcrcg.pretrain2d.frames import FrameCache, FrameSequence, list_sequences, load_sequence
@@ -431,6 +431,7 @@ def pretrain(cfg: Any, base_dir: str | Path | None = None, log: Callable[[str], 
         return reused
     if s.num_threads:
         torch.set_num_threads(s.num_threads)
+    keep_freed_memory()
     show = bool(lookup(data, "runtime.progress", True)) if progress is None else progress
     device = torch.device(resolve_device(lookup(data, "runtime.device")))
     d = _load_data(data, s, base, device, log)
