@@ -82,10 +82,11 @@ def keep_freed_memory() -> bool:
 
     Why: glibc maps each allocation of 32 MB or more (less, by its dynamic threshold) afresh and unmaps it when
     freed, so every such tensor of every step is page-faulted and zeroed by the kernel again. GeoTransformer's
-    (N, N, C) embeddings and their gradients are ~70-125 MB each at the cpu profile: its training step spent
-    1.7 of 4.8 s of CPU in the kernel (328k page faults a step); with the heap kept, 2.9-3.0 s (0.3 s in the
-    kernel, 28-35k faults), the same weights bit for bit after 7 steps (2026-12-06, 3 cpu-profile training pairs,
-    one thread). Predator's step, with smaller tensors, was within the noise of repeated runs (0.18-0.27 s).
+    (N, N, C) embeddings and their gradients are ~70-125 MB each at the cpu profile: its training step took
+    4.0-4.8 s of CPU, 1.3-1.7 s of it in the kernel (~327k page faults a step); with the heap kept, 2.9-3.9 s
+    (0.3-0.7 s in the kernel, 28-47k faults), the same weights bit for bit after 7 steps (2026-12-06, 3
+    cpu-profile training pairs, one thread, separate processes). Predator's step, with smaller tensors, was
+    within the noise of repeated runs (0.18-0.27 s).
     The cost: memory freed inside the process stays with it (its peak stays its footprint) up to 2 GB above
     the heap's top before glibc gives it back."""
     global _HEAP_SET
