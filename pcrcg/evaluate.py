@@ -386,8 +386,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     from pcrcg.cli import one_line_errors
 
+    keep_freed_memory()  # large tensors reuse the heap, as in a run (pcrcg.device)
     # the profile's threads (torch's and the native pools'), as a run's stages use them (the same speed)
-    keep_freed_memory()
     with one_line_errors("pcrcg.evaluate"), cpu_threads(OmegaConf.select(cfg, "profile.train.num_threads")):
         result = run(cfg)  # bad input: one line naming the file or setting, exit 2
     from pcrcg.cli import strict_json
