@@ -185,6 +185,33 @@ def test_geometric_embedding_is_memoised_in_inference_only_and_forgotten_when_th
         GeoTransformerConfig.from_mapping({**_model_cfg(), "embedding_memo_mb": -1})
 
 
+@pytest.mark.parametrize("dtype,n,c", [(torch.float32, 37, 16), (torch.float32, 300, 64), (torch.float64, 37, 16)])
+def test_relative_scores_equal_the_einsum_with_gradients(dtype, n, c):
+    """The runs' float32: the einsum's values and gradients bit for bit (the same batched products); float64: pos's
+    gradient to rounding (the einsum sums its 4 heads in another order there)."""
+    from pcrcg.models.geotransformer.transformer import _RelativeScores
+
+    torch.manual_seed(3)
+    qw = torch.randn(4, n, c, dtype=dtype)
+    pos = torch.randn(n, n, c, dtype=dtype)
+    g = torch.randn(4, n, n, dtype=dtype)
+    res = []
+    for fn in (lambda a, b: torch.einsum("hnc,nmc->hnm", a, b), _RelativeScores.apply):
+        a, b = qw.clone().requires_grad_(), pos.clone().requires_grad_()
+        out = fn(a, b)
+        out.backward(g)
+        res.append((out.detach(), a.grad, b.grad))
+    if dtype == torch.float32:
+        assert all(torch.equal(x, y) for x, y in zip(*res))
+    else:
+        assert torch.equal(res[0][0], res[1][0]) and torch.equal(res[0][1], res[1][1])
+        torch.testing.assert_close(res[1][2], res[0][2], rtol=1e-13, atol=1e-13)
+    assert res[1][2].shape == (n, n, c) and res[1][2].is_contiguous()
+    b = pos.clone().requires_grad_()  # a gradient for pos alone
+    _RelativeScores.apply(qw, b).backward(g)
+    assert torch.equal(b.grad, res[1][2])
+
+
 def test_triplet_angles_known_values():
     # a right angle at the origin: the neighbour of p0 is p1 (distance 1), p2 lies on the y axis
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])

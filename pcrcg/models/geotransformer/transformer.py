@@ -23,6 +23,28 @@ def _heads(x: torch.Tensor, h: int) -> torch.Tensor:
     return x.view(x.shape[0], h, -1).transpose(0, 1)
 
 
+class _RelativeScores(torch.autograd.Function):
+    """``torch.einsum("hnc,nmc->hnm", qw, pos)``: qw (h, N, C), pos (N, M, C) -> (h, N, M), the same values and
+    gradients (bit for bit in float32 on the CPU, measured at the tests' and the cpu profile's sizes; pos's gradient
+    to rounding in float64, where the einsum adds the heads in another order: ``tests/test_geotransformer.py``), with pos's gradient
+    written in pos's (N, M, C) layout: the einsum's backward made it as (N, C, M) and copied it over, a pass of
+    N * M * C floats (~125 MB at the cpu profile) for each self-attention layer and cloud of a training step."""
+
+    @staticmethod
+    def forward(ctx, qw: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(qw, pos)
+        # per query n: (h, C) @ (C, M)
+        return torch.bmm(qw.transpose(0, 1), pos.transpose(1, 2)).transpose(0, 1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        qw, pos = ctx.saved_tensors
+        g = grad.permute(1, 2, 0).contiguous()  # (N, M, h)
+        g_qw = torch.bmm(g.transpose(1, 2), pos).transpose(0, 1) if ctx.needs_input_grad[0] else None
+        g_pos = torch.bmm(g, qw.transpose(0, 1)) if ctx.needs_input_grad[1] else None  # (N, M, h) @ (N, h, C)
+        return g_qw, g_pos
+
+
 class FeedForward(nn.Module):
     """x (N, C) -> LayerNorm(x + W2 relu(W1 x)), W1: C -> 2C."""
 
@@ -56,7 +78,7 @@ class AttentionLayer(nn.Module):
             # q . (W_P r_nm + b_P) per head, without materialising the projected (N, M, C) embedding
             qw = torch.einsum("hnd,hdc->hnc", q, self.p.weight.view(self.h, d, -1))
             qb = (q * self.p.bias.view(self.h, 1, d)).sum(-1, keepdim=True)
-            scores = scores + torch.einsum("hnc,nmc->hnm", qw, pos) + qb
+            scores = scores + _RelativeScores.apply(qw, pos) + qb
         attn = torch.softmax(scores / d**0.5, dim=-1)
         msg = (attn @ v).transpose(0, 1).reshape(n, c)
         return self.ffn(self.norm(x + self.out(msg)))
