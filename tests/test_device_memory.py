@@ -38,9 +38,10 @@ def _probe(mode: str, **env: str) -> dict:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_freed_memory_is_kept_so_large_allocations_stop_faulting_pages():
     plain, kept = _probe("plain"), _probe("keep")
-    assert kept["kept"] is True and kept["again"] is True
-    # glibc maps each 64 MB block afresh: ~16k faults per allocation; kept, the heap's pages are reused
-    assert plain["faults"] > 20 * 10_000
-    assert kept["faults"] < 2_000
     off = _probe("keep", PCRCG_MALLOC="default")
-    assert off["kept"] is False and off["faults"] > 20 * 10_000
+    assert kept["kept"] is True and kept["again"] is True and off["kept"] is False
+    if plain["faults"] < 20 * 10_000:  # a kernel that backs such blocks with huge pages: few faults either way
+        pytest.skip(f"{plain['faults']} page faults for 20 fresh 64 MB blocks: nothing to compare here")
+    # glibc maps each 64 MB block afresh: ~16k faults per allocation; kept, the heap's pages are reused
+    assert kept["faults"] < 2_000
+    assert off["faults"] > 20 * 10_000
