@@ -27,7 +27,10 @@ sparse aggregation on the CPU, two-pass norms with a closed-form backward, per-p
 shared k-NN graphs, the fused circle-loss log-sum-exps, the labels' arg-maxes by blocks), and prints
 both side by side with the speed-up and
 the largest difference of the two inferences' descriptors (float rounding only). Every step starts
-from an empty per-batch KPConv cache, as in a run, where every batch is a new pair. Wall time
+from an empty per-batch KPConv cache, as in a run, where every batch is a new pair, and every inference
+without GeoTransformer's kept embeddings (a run's evaluation reuses a fragment's in its other pairs: the
+benchmark's rounds over the same pairs would all hit). For GeoTransformer ``old`` also runs the relative-position
+scores as the einsum they were (:class:`pcrcg.models.geotransformer.transformer._RelativeScores`). Wall time
 (median) and the process's CPU time (median, steadier on a shared machine) are both given.
 
 Each profile runs in its own process so that the peak memory is its own.
@@ -183,6 +186,9 @@ def _step_functions(module, opt, sync):
 
     def infer_on(b):
         b.pyramid.cache.clear()
+        for m in module.modules():  # nor GeoTransformer's embeddings of the fragments seen in earlier rounds
+            if hasattr(m, "clear_memo"):
+                m.clear_memo()
         module.predict_pair(b)
         sync()
 

@@ -157,9 +157,13 @@ class GeometricStructureEmbedding(nn.Module):
         the (N, N, k, hidden_dim) tensors (module docstring); memoised without gradients (class docstring)."""
         bound = EMBEDDING_MEMO_BYTES if self.memo_bytes is None else int(self.memo_bytes)
         if torch.is_grad_enabled() or bound <= 0:
-            self._memo.clear()  # training: the weights are about to change; no memory held meanwhile
+            self.clear_memo()  # training: the weights are about to change; no memory held meanwhile
             return self._embed(points)
         return self._memoised(points, bound)
+
+    def clear_memo(self) -> None:
+        """Forget the kept embeddings (a benchmark that times one inference as a first sight of its fragments)."""
+        self._memo.clear()
 
     def _weights_state(self) -> tuple:
         """Identifies the weights: each parameter's storage and in-place version, and the device."""

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pcrcg.models.geotransformer.embedding import GeometricStructureEmbedding
+from pcrcg.models.kpconv.conv import get_implementation
 
 
 def _heads(x: torch.Tensor, h: int) -> torch.Tensor:
@@ -78,7 +79,10 @@ class AttentionLayer(nn.Module):
             # q . (W_P r_nm + b_P) per head, without materialising the projected (N, M, C) embedding
             qw = torch.einsum("hnd,hdc->hnc", q, self.p.weight.view(self.h, d, -1))
             qb = (q * self.p.bias.view(self.h, 1, d)).sum(-1, keepdim=True)
-            scores = scores + _RelativeScores.apply(qw, pos) + qb
+            # the einsum under the KPConv implementation ``dense``, the switch to the previous code (benchmarks.model)
+            rel = (torch.einsum("hnc,nmc->hnm", qw, pos) if get_implementation() == "dense"
+                   else _RelativeScores.apply(qw, pos))
+            scores = scores + rel + qb
         attn = torch.softmax(scores / d**0.5, dim=-1)
         msg = (attn @ v).transpose(0, 1).reshape(n, c)
         return self.ffn(self.norm(x + self.out(msg)))
