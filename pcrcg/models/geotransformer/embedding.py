@@ -136,13 +136,13 @@ class GeometricStructureEmbedding(nn.Module):
     at the cpu profile, and the 500 + 500 pairs a cpu-profile evaluation reads see each fragment ~3 times.
     """
 
-    def __init__(self, hidden_dim: int, sigma_d: float, sigma_a: float, angle_k: int, memo_bytes: int | None = None):
+    def __init__(self, hidden_dim: int, sigma_d: float, sigma_a: float, angle_k: int):
         super().__init__()
         self.dim, self.sigma_d, self.angle_k = hidden_dim, float(sigma_d), int(angle_k)
         self.factor_a = 180.0 / (float(sigma_a) * math.pi)
         self.proj_d = nn.Linear(hidden_dim, hidden_dim)
         self.proj_a = nn.Linear(hidden_dim, hidden_dim)
-        self.memo_bytes = memo_bytes
+        self.memo_bytes: int | None = None  # GeoTransformer sets it from model.embedding_memo_mb
         self._memo: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self._memo_state: tuple = ()
 
@@ -181,13 +181,12 @@ class GeometricStructureEmbedding(nn.Module):
             self._memo.move_to_end(key)
             return hit
         out = self._embed(points)
-        size = out.numel() * out.element_size()
-        if size <= bound:
+        nbytes = lambda m: m.numel() * m.element_size()  # noqa: E731
+        if nbytes(out) <= bound:
             self._memo[key] = out
-            size += sum(m.numel() * m.element_size() for k, m in self._memo.items() if k != key)
+            size = sum(nbytes(m) for m in self._memo.values())
             while size > bound:  # the oldest go first
-                old = self._memo.popitem(last=False)[1]
-                size -= old.numel() * old.element_size()
+                size -= nbytes(self._memo.popitem(last=False)[1])
         return out
 
     def _embed(self, points: torch.Tensor) -> torch.Tensor:
