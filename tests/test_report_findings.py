@@ -474,6 +474,60 @@ def test_the_findings_list_the_seeds_behind_each_job_and_the_command_for_the_mis
     assert "| PCR-CG, deep/explicit, Pri3D, 11x11 | `main_results` features=deep | 0, 1, 2 | — | — |" in md
 
 
+def test_the_findings_say_how_each_rows_model_trained_and_join_a_resumed_trainings_curves(tmp_path):
+    """Predator's recall passes the threshold at step 299 in a training stopped after step 449 and resumed (a
+    second run of the same config and code, which logs 449 again and 599); PCR-CG's never does."""
+    import time
+
+    from pcrcg.report.findings import TrainingRow
+    from pcrcg.tracking.store import ensure_store
+    from pcrcg.tracking.tracker import RunTracker
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    ensure_store(uri)
+    main, work = RunTracker(uri, "main_results"), tmp_path / "work"
+    rng = np.random.default_rng(3)
+    weak = _base(rng, SCENES, 0.3)
+    params = {"seed": 0, "encoder2d.name": "pri3d", "model.loss.matchability_after_recall": 0.3}
+    tags = {"experiment": "main_results", "code_version": "v1", "profile": "cpu", "label": "Predator",
+            "config_hash": "Predator seed=0"}
+    stopped = main.start("Predator seed=0", tags)
+    main.log_history(stopped, {"val/recall": [(149, 0.2), (299, 0.31), (449, 0.28)],
+                               "val/matchability_gate": [(149, 0), (299, 1), (449, 0)]})
+    main.kill(stopped, "stopped")
+    other = main.start("Predator seed=0", {**tags, "code_version": "v0"})  # another code's run: not a part
+    main.log_history(other, {"val/matchability_gate": [(149, 1), (749, 1)]})
+    main.kill(other, "stopped")
+    time.sleep(0.01)  # start times in ms: the resumed run starts later
+    runs = {}
+    for label, ok, recall, gate in (("Predator", weak, [(449, 0.33), (599, 0.36)], [(449, 1), (599, 1)]),
+                                    ("PCR-CG", _more(rng, weak, 0.1), [(149, 0.1), (299, 0.2)], [(149, 0), (299, 0)])):
+        rid = runs[label] = _run(main, work, f"{label} seed=0", params, {"label": label}, ok)
+        main.log_history(rid, {"val/recall": recall, "val/matchability_gate": gate,
+                               "val/overlap_recall": [(recall[-1][0], 0.6)]})
+        if label == "PCR-CG":
+            main.log_metrics(rid, {"color_coverage": 0.127})
+    out = tmp_path / "reports"
+    result = generate_report(_cfg(out, uri), base_dir=tmp_path, command="python -m pcrcg.report")
+    by_label = {t.names[0]: t for t in result.findings.training}
+    assert set(by_label) == {"Predator", "PCR-CG"}
+    pred, pcr = by_label["Predator"], by_label["PCR-CG"]
+    assert pred.run_id == runs["Predator"] and pred.seed == "0" and pred.threshold == 0.3
+    # 149 and 299 from the stopped part, 449 from the resumed one (it went on from there), 599: 3 of 4 on, from 299
+    assert (pred.gate_on, pred.gate_total, pred.first_on) == (3, 4, 299)
+    assert pred.recall_last == pytest.approx(0.36) and pred.recall_best == pytest.approx(0.36)
+    assert (pcr.gate_on, pcr.gate_total, pcr.first_on) == (0, 2, None) and pcr.coverage == pytest.approx(0.127)
+    md = (out / "findings.md").read_text()
+    assert "### How the rows' models trained" in md
+    assert "| Predator | `main_results` features=none | 0 | 36.0% (36.0%) | on from step 299 (3 of 4 validations) | 60.0% | — |" in md
+    assert ("| PCR-CG, deep/explicit, Pri3D, 11x11 | `main_results` features=deep | 0 | 20.0% (20.0%) | never on "
+            "(0 of 2 validations) | 60.0% | 12.7% |") in md
+    table = pd.read_csv(out / "findings_training.csv")
+    assert list(table["rows"]) == ["Predator", "PCR-CG; deep/explicit; Pri3D; 11x11"] and list(table["gate_on"]) == [3, 0]
+    assert TrainingRow([], "e", "j", "0", "r", threshold=0.0).gate_text() == "on from the start (threshold 0)"
+    assert TrainingRow([], "e", "j", "0", "r").gate_text() == DASH  # no curve logged
+
+
 def test_the_forest_plot_keeps_our_scale_and_draws_a_far_paper_difference_at_the_edge(tmp_path):
     """ICP's paper difference (+67) beside ours (a few points) would squeeze every line: the axis follows ours
     (and paper differences within twice ours), and the far one is drawn at the edge."""

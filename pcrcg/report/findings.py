@@ -346,6 +346,7 @@ class RowSeeds:
     names: list[str]
     seeds: set[str] = field(default_factory=set)  # seeds of the runs the findings count
     seedless: bool = False  # its runs do not read the seed: one stands for every seed
+    runs: dict[str, str] = field(default_factory=dict)  # run id -> seed, of the runs the findings count
 
     def missing(self, wanted: Sequence[int]) -> list[int]:
         return [] if self.seedless else [s for s in wanted if str(s) not in self.seeds]
@@ -356,6 +357,130 @@ class RowSeeds:
         return ", ".join(sorted(self.seeds, key=lambda x: (len(x), x))) or DASH
 
 
+# the validation curves a learned run logs (pcrcg.models.module): Predator's feature-match recall, the gate of its
+# matchability loss (1 at a validation after which the loss is on), the overlap head's recall; the lifted features'
+# share of the test points
+VAL_RECALL, GATE, OVERLAP_RECALL, COVERAGE = "val/recall", "val/matchability_gate", "val/overlap_recall", "color_coverage"
+THRESHOLD = "model.loss.matchability_after_recall"
+
+
+@dataclass
+class TrainingRow:
+    """How one counted run of a findings job trained: its validation feature-match recall (last and best), the
+    validations after which Predator's schedule had its matchability loss on (``gate_on`` of ``gate_total``, the
+    first at step ``first_on``) under the run's ``threshold``, the overlap head's last validation recall and the
+    lifted features' share of the test points (None: not logged)."""
+
+    names: list[str]
+    experiment: str
+    job: str
+    seed: str
+    run_id: str
+    recall_last: float | None = None
+    recall_best: float | None = None
+    threshold: float | None = None
+    gate_on: int = 0
+    gate_total: int = 0
+    first_on: int | None = None
+    overlap_recall: float | None = None
+    coverage: float | None = None
+
+    def gate_text(self) -> str:
+        if self.threshold is not None and self.threshold <= 0:
+            return "on from the start (threshold 0)"
+        if self.gate_total == 0:
+            return DASH
+        if self.gate_on == 0:
+            return f"never on (0 of {self.gate_total} validations)"
+        return f"on from step {self.first_on} ({self.gate_on} of {self.gate_total} validations)"
+
+
+def _number(row: pd.Series | None, key: str) -> float | None:
+    v = None if row is None else row.get(key)
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return None if math.isnan(v) else v
+
+
+def _earlier_parts(run: pd.Series, runs: pd.DataFrame) -> list[str]:
+    """Run ids of the unfinished runs of the same experiment, config and code that started before ``run``, oldest
+    first: a training resumed from ``last.ckpt`` is a new run, and the validations before the resumption are
+    in the run that was stopped."""
+    need = ("tags.config_hash", "tags.code_version", "experiment", "status", "start_time")
+    if any(k not in runs.columns for k in need) or any(pd.isna(run.get(k)) for k in need[:3]):
+        return []
+    same = runs[(runs["experiment"] == run["experiment"]) & (runs["tags.config_hash"] == run["tags.config_hash"])
+                & (runs["tags.code_version"] == run["tags.code_version"]) & (runs["status"] != "FINISHED")
+                & (runs["start_time"] < run["start_time"])]
+    return [str(r) for r in same.sort_values("start_time")["run_id"]]
+
+
+def _curve(history: Any, run_ids: Sequence[str], key: str) -> list[tuple[int, float]]:
+    """Metric ``key`` over the parts of one training (oldest first): at a step that several parts logged, the
+    latest part's value (it went on from there)."""
+    merged: dict[int, float] = {}
+    for rid in run_ids:
+        merged.update(dict(history(rid, key)) if history is not None else {})
+    return sorted(merged.items())
+
+
+def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any) -> list[TrainingRow]:
+    """A :class:`TrainingRow` per counted run that logged validation curves (learned models; classical methods
+    have none), job by job in the findings' order, seeds ascending; the curves of a resumed training joined
+    from its parts (:func:`_earlier_parts`). ``source``: anything with
+    ``metric_history(run_id, key) -> [(step, value), ...]`` (:class:`pcrcg.report.outcomes.OutcomeSource`)."""
+    history = getattr(source, "metric_history", None)
+    by_id = {str(r["run_id"]): r for _, r in runs.iterrows()} if len(runs) else {}
+    out = []
+    for rs in row_seeds:
+        for run_id, seed in sorted(rs.runs.items(), key=lambda kv: (len(kv[1]), kv[1], kv[0])):
+            row = by_id.get(run_id)
+            if _number(row, f"metrics.{VAL_RECALL}") is None:
+                continue
+            tr = TrainingRow(list(rs.names), rs.experiment, rs.job, seed, run_id,
+                             recall_last=_number(row, f"metrics.{VAL_RECALL}"),
+                             threshold=_number(row, f"params.{THRESHOLD}"),
+                             overlap_recall=_number(row, f"metrics.{OVERLAP_RECALL}"),
+                             coverage=_number(row, f"metrics.{COVERAGE}"))
+            parts = [*_earlier_parts(row, runs), run_id]
+            tr.recall_best = max((v for _, v in _curve(history, parts, VAL_RECALL)), default=tr.recall_last)
+            gate = _curve(history, parts, GATE)
+            on = [step for step, v in gate if v > 0]
+            tr.gate_total, tr.gate_on, tr.first_on = len(gate), len(on), (on[0] if on else None)
+            out.append(tr)
+    return out
+
+
+TRAINING_INTRO = (
+    "Each learned run behind the rows: its validation feature-match recall (the share of sampled validation "
+    "correspondences whose nearest descriptor is a true match, Predator's training `recall`) at the last "
+    "validation and the best one; the validations after which the matchability loss was on (Predator's schedule, as "
+    "its official trainer: on while that recall is above `model.loss.matchability_after_recall`, 0.3); the overlap "
+    "head's validation recall; and the share of the test points that the lifted 2D features reach. A run whose "
+    "recall never passes the threshold trains without the matchability loss, and its evaluation samples points by "
+    "overlap x an untrained matchability head: a comparison with such a run measures the training schedule as "
+    "much as the features.")
+
+
+def training_markdown(filled: "FilledFindings", heading: str = "###") -> list[str]:
+    """The section on how the rows' models trained (:func:`training_rows`); [] when no counted run logged curves."""
+    if not filled.training:
+        return []
+    out = [f"{heading} How the rows' models trained", "", TRAINING_INTRO, "",
+           "| Rows | Job | Seed | Val. feature recall, last (best) | Matchability loss | Val. overlap recall | "
+           "Color coverage |", "|---|---|---:|---:|---|---:|---:|"]
+
+    def pct(v: float | None) -> str:
+        return DASH if v is None else f"{100 * v:.1f}%"
+
+    for t in filled.training:
+        out.append(f"| {', '.join(t.names)} | `{t.experiment}` {t.job} | {t.seed} | {pct(t.recall_last)} "
+                   f"({pct(t.recall_best)}) | {t.gate_text()} | {pct(t.overlap_recall)} | {pct(t.coverage)} |")
+    return out + [""]
+
+
 @dataclass
 class FilledFindings:
     spec: FindingsSpec
@@ -364,6 +489,7 @@ class FilledFindings:
     identity: str = DEFAULT_IDENTITY
     codes: dict[str, int] = field(default_factory=dict)
     row_seeds: list[RowSeeds] = field(default_factory=list)
+    training: list[TrainingRow] = field(default_factory=list)
 
     def missing_runs(self) -> list[tuple[RowSeeds, list[int]]]:
         """Each job with seeds of ``spec.seeds`` that no counted run has, and those seeds."""
@@ -503,6 +629,7 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
                 rs.names.append(sel.name)
             refs = [r for c in ours.cells if c.row.label == sel.name for r in c.runs]
             rs.seeds |= {r.seed for r in refs}
+            rs.runs.update({r.run_id: r.seed for r in refs})
             rs.seedless |= bool(refs) and all(r.seedless for r in refs)
         real = (_fill(f, f"{spec.real}/{f.benchmark}", runs, None, profiles, identity, source, settings)
                 if spec.real and not f.is_target else None)
@@ -530,7 +657,7 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
             lines.append(fl)
     codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
     return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()},
-                          list(row_seeds.values()))
+                          list(row_seeds.values()), training_rows(list(row_seeds.values()), runs, source))
 
 
 ABOVE, BELOW, WITHIN = "above", "below", "within"
@@ -704,6 +831,7 @@ def to_markdown(filled: FilledFindings, heading: str = "##", figure: str | None 
     if figure:
         out += [f"![The findings: our differences with their intervals and seeds, the paper's]({figure})", ""]
     out += differs_markdown(filled, heading + "#")
+    out += training_markdown(filled, heading + "#")
     if targets:
         out += [f"{heading}# Targets of the profile", "", TARGETS_INTRO, "",
                 "| Target | Comparison | Where | Target Δ | Ours Δ | 95% interval | Verdict |",
@@ -789,8 +917,8 @@ FIGURE = "findings.png"
 
 
 def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
-    """``findings.md``, ``findings.tex``, ``findings.csv`` and the forest plot ``findings.png`` in ``out_dir``;
-    returns them."""
+    """``findings.md``, ``findings.tex``, ``findings.csv``, the forest plot ``findings.png`` and, where a counted run
+    logged validation curves, ``findings_training.csv`` (:func:`training_rows`) in ``out_dir``; returns them."""
     from pcrcg.plots.findings import plot_findings
 
     md, tex, path = out_dir / "findings.md", out_dir / "findings.tex", out_dir / "findings.csv"
@@ -801,7 +929,12 @@ def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
         w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
         w.writeheader()
         w.writerows(csv_rows(filled))
-    return [md, tex, path] + ([fig] if fig is not None else [])
+    files = [md, tex, path] + ([fig] if fig is not None else [])
+    if filled.training:  # how the rows' models trained, one line per run
+        files.append(out_dir / "findings_training.csv")
+        pd.DataFrame([{**{k: v for k, v in vars(t).items() if k != "names"}, "rows": "; ".join(t.names),
+                       "matchability_loss": t.gate_text()} for t in filled.training]).to_csv(files[-1], index=False)
+    return files
 
 
 # ---------------------------------------------------------------------------------------------- jobs (sweeps/findings.sh)

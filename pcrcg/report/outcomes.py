@@ -122,6 +122,15 @@ class OutcomeSource:
         v = None if rec is None else rec.get(f"{kind}.{key}")
         return default if v is None or (isinstance(v, float) and math.isnan(v)) else v
 
+    def metric_history(self, run_id: str, key: str) -> list[tuple[int, float]]:
+        """Every logged value of metric ``key`` of a run as (step, value), in step order ([] when it has none or
+        the store cannot be read)."""
+        try:
+            hist = self.client.get_metric_history(run_id, key)
+        except Exception:  # noqa: BLE001 - an unreachable store: no curve
+            return []
+        return sorted((int(m.step), float(m.value)) for m in hist)
+
     def _listed(self, run_id: str, path: str) -> list[str]:
         try:
             return [f.path for f in self.client.list_artifacts(run_id, path)]
