@@ -459,9 +459,10 @@ TRAINING_INTRO = (
     "validation and the best one; the validations after which the matchability loss was on (Predator's schedule, as "
     "its official trainer: on while that recall is above `model.loss.matchability_after_recall`, 0.3); the overlap "
     "head's validation recall; and the share of the test points that the lifted 2D features reach. A run whose "
-    "recall never passes the threshold trains without the matchability loss, and its evaluation samples points by "
-    "overlap x an untrained matchability head: a comparison with such a run measures the training schedule as "
-    "much as the features.")
+    "recall never passes the threshold trains without the matchability loss: its backbone never learns from that "
+    "loss, and its matchability head gives every point the same score, so that its evaluation samples points by "
+    "overlap alone (where a fragment has more points than N; with fewer, Predator's script draws N uniformly with "
+    "replacement). A comparison with such a run compares training schedules as well as features.")
 
 
 def training_markdown(filled: "FilledFindings", heading: str = "###") -> list[str]:
