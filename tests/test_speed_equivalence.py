@@ -427,3 +427,24 @@ def test_matchability_labels_by_blocks_equal_the_full_score_matrix():
     got = matchability_labels(xa, xb, a, b, 0.3)
     assert 0 < float(ref[0].mean()) < 1
     assert all(torch.equal(x, y) for x, y in zip(got, ref))
+
+
+def test_row_arg_max_and_min_by_numpy_give_torchs_indices():
+    """pcrcg.device.argmax_rows / argmin_rows: torch's indices for float32 and float64 rows with ties (the first),
+    NaN (the first NaN counts as the extreme) and infinities, strided views, a tensor that needs a gradient and an
+    empty batch; other dtypes and shapes are torch's own."""
+    from pcrcg.device import argmax_rows, argmin_rows
+
+    nan, inf = float("nan"), float("inf")
+    small = torch.tensor([[1., 3., 3., 0.], [nan, 1., nan, 2.], [0., 0., 0., 0.], [2., inf, inf, -inf], [-inf, 5., -inf, 5.]])
+    gen = torch.Generator().manual_seed(3)
+    big = torch.randn(300, 700, generator=gen)
+    big[:, 10] = big[:, 600]  # ties across the row
+    cases = [small, small.double(), big, big.t()[::3], big[:, ::2], big.clone().requires_grad_(True),
+             torch.zeros(0, 5), torch.randint(0, 4, (50, 9))]
+    for x in cases:
+        for mine, ref in ((argmax_rows(x), x.argmax(1)), (argmin_rows(x), x.argmin(1))):
+            assert mine.dtype == torch.int64 and torch.equal(mine, ref)
+    assert argmax_rows(small).tolist() == [1, 0, 0, 1, 1] and argmin_rows(small).tolist() == [3, 0, 0, 3, 0]
+    one = torch.tensor([3., 1., 2.])  # 1-D: torch's
+    assert int(argmax_rows(one.unsqueeze(0))) == 0 and int(argmin_rows(one.unsqueeze(0))) == 1

@@ -9,13 +9,16 @@ CPU_CHUNK = 128  # source rows per distance block on CPU (see match_descriptors)
 
 
 def _nearest(a: torch.Tensor, b: torch.Tensor, chunk: int) -> torch.Tensor:
-    """For each row of a (N, D), the index of its L2-nearest row of b (M, D): (N,) int64."""
+    """For each row of a (N, D), the index of its L2-nearest row of b (M, D): (N,) int64. Each block's arg-min by
+    :func:`pcrcg.device.argmin_rows` (the same indices; NumPy's loop on the CPU: N = M = 5,000, 77 -> 56 ms)."""
+    from pcrcg.device import argmin_rows
+
     bb = (b * b).sum(1)
     out = []
     for s in range(0, a.shape[0], chunk):
         # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b; |a|^2 is constant per row
         d = bb[None, :] - 2.0 * (a[s : s + chunk] @ b.T)
-        out.append(torch.argmin(d, dim=1))
+        out.append(argmin_rows(d))
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.long, device=a.device)
 
 

@@ -50,6 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pcrcg.device import argmax_rows
 from pcrcg.geometry import backproject, invert, project, scale_intrinsics, transform_points
 
 # Pri3D's published settings
@@ -272,7 +273,7 @@ def match_accuracy(feat_src: torch.Tensor, feat_tgt: torch.Tensor, src_pix: np.n
                               device=dev)
     hits = []
     for s in range(0, n, chunk):
-        nn_idx = (q[s:s + chunk] @ c.t()).argmax(dim=1)
+        nn_idx = argmax_rows(q[s:s + chunk] @ c.t())
         pred = cand[nn_idx].to(torch.float64).flip(1)  # (u, v)
         err = torch.linalg.norm(pred - true_uv[s:s + chunk], dim=1)
         hits.append(err <= threshold)
