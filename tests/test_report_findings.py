@@ -524,7 +524,7 @@ def test_the_findings_say_how_each_rows_model_trained_and_join_a_resumed_trainin
             "(0 of 2 validations) | 60.0% | 12.7% |") in md
     table = pd.read_csv(out / "findings_training.csv")
     assert list(table["rows"]) == ["Predator", "PCR-CG; deep/explicit; Pri3D; 11x11"] and list(table["gate_on"]) == [3, 0]
-    assert TrainingRow([], "e", "j", "0", "r", threshold=0.0).gate_text() == "on from the start (threshold 0)"
+    assert TrainingRow([], "e", "j", "0", "r", threshold=0.0).gate_text() == "on from the first step"
     assert TrainingRow([], "e", "j", "0", "r").gate_text() == DASH  # no curve logged
 
 

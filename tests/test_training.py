@@ -12,7 +12,7 @@ import torch
 import lightning as L
 from lightning.pytorch.callbacks import Callback
 
-from pcrcg.errors import DataError
+from pcrcg.errors import ConfigError, DataError
 from pcrcg.data.layout import PairRecord, write_gt_log, write_pairs, write_ply
 from pcrcg.models.datamodule import EpochSampler, PairCollate, PairDataModule
 from pcrcg.models.kpconv import PyramidSpec, calibrate_limits
@@ -422,3 +422,28 @@ def test_ddp_spawn_on_two_cpu_processes(tmp_path, toy_root):
     saved = torch.load(res["checkpoint"], map_location="cpu", weights_only=True)["state_dict"]
     for k, v in module.state_dict().items():  # the weights rank 0 wrote are the ones read back
         assert torch.equal(v, saved[k]), k
+
+
+def test_the_matchability_loss_is_on_as_each_official_trainer_has_it():
+    """``model.loss.matchability_after_recall: official`` (the default): geometry only, Predator's schedule (off until
+    a validation recall above 0.3, off again below it); with lifted 2D features, PCR-CG's trainer (on from the first
+    step, whatever the recall); a number is that threshold for every run; anything else names the setting."""
+    base = {**MODEL, "voxel_size": 0.1, "loss": {}}
+
+    def validate(module, recall):
+        module.on_validation_epoch_start()
+        module._val_recalls.append(recall)
+        module.on_validation_epoch_end()
+        return float(module.matchability_gate)
+
+    geometry = PCRCGModule(base)
+    assert geometry.loss_cfg.matchability_after_recall == "official" and geometry.matchability_after == 0.3
+    assert float(geometry.matchability_gate) == 0.0
+    assert [validate(geometry, r) for r in (0.2, 0.35, 0.25)] == [0.0, 1.0, 0.0]
+    color = PCRCGModule(base, lifting=_lifting("implicit", "rgb", dim=3))
+    assert color.matchability_after == 0.0 and float(color.matchability_gate) == 1.0
+    assert [validate(color, r) for r in (0.1, 0.05)] == [1.0, 1.0]
+    schedule = PCRCGModule({**base, "loss": {"matchability_after_recall": 0.3}}, lifting=_lifting("implicit", "rgb", dim=3))
+    assert float(schedule.matchability_gate) == 0.0 and [validate(schedule, r) for r in (0.2, 0.4)] == [0.0, 1.0]
+    with pytest.raises(ConfigError, match="model.loss.matchability_after_recall"):
+        PCRCGModule({**base, "loss": {"matchability_after_recall": "predator"}})

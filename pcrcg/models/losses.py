@@ -43,6 +43,10 @@ from pcrcg.fields import NodeSettings
 from pcrcg.models.kpconv.conv import get_implementation
 
 
+OFFICIAL = "official"
+PREDATOR_MATCHABILITY_AFTER_RECALL = 0.3  # Predator's trainer: the matchability loss on after a validation above this
+
+
 @dataclass
 class LossConfig(NodeSettings):
     """Loss settings; ``*_radius`` in units of the model voxel size (Predator at 2.5 cm:
@@ -61,8 +65,9 @@ class LossConfig(NodeSettings):
     w_circle: float = 1.0
     w_overlap: float = 1.0
     w_matchability: float = 1.0
-    # Predator adds the matchability loss once the validation feature-match recall exceeds this
-    matchability_after_recall: float = 0.3
+    # when the matchability loss is on: "official" (each run's official trainer, :meth:`matchability_threshold`), or
+    # a threshold of the validation feature-match recall for every run (0: always on)
+    matchability_after_recall: float | str = OFFICIAL
     # coarse losses on the bottleneck (not Predator's; see the module docstring)
     w_coarse_overlap: float = 0.0
     w_coarse_circle: float = 0.0
@@ -78,6 +83,22 @@ class LossConfig(NodeSettings):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
                 raise ConfigError(f"model.loss.{name}", v, "a number >= 0")
+        v = self.matchability_after_recall
+        if v != OFFICIAL and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1):
+            raise ConfigError("model.loss.matchability_after_recall", v,
+                              f"{OFFICIAL} | a validation feature-match recall in [0, 1) (0: always on)")
+
+    def matchability_threshold(self, lifted: bool) -> float:
+        """The validation feature-match recall above which the matchability loss is on (0: from the first step).
+        ``official``: what each official trainer does. Predator's (geometry only, ``lifted`` False) weights the loss
+        by a ``w_saliency_loss`` that it sets to 1 after a validation whose recall is above 0.3 and to 0 otherwise
+        (prs-eth/OverlapPredator, lib/trainer.py); PCR-CG's (2D features lifted) sets the same weight but sums
+        the losses without it (Gardlin/PCR-CG, lib/trainer.py: ``c_loss += res[k]`` for the circle, overlap and
+        saliency losses), so its matchability loss is on from the first step."""
+        v = self.matchability_after_recall
+        if v == OFFICIAL:
+            return 0.0 if lifted else PREDATOR_MATCHABILITY_AFTER_RECALL
+        return float(v)
 
 
 def circle_loss(coords_dist: torch.Tensor, feats_dist: torch.Tensor, pos_radius: float, safe_radius: float,

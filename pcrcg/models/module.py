@@ -14,8 +14,9 @@ train mode does) or ``end_to_end`` (the paper's text). A lifting config without 
 checkpoint) trains end to end, as those did.
 
 Optimisation as the paper / Predator: SGD (lr 0.005, momentum 0.98, weight decay 1e-6), the
-learning rate times 0.95 after every epoch, batch size 1. The matchability loss joins once the
-validation feature-match recall exceeds ``loss.matchability_after_recall`` (Predator's schedule).
+learning rate times 0.95 after every epoch, batch size 1. The matchability loss is on as the run's official
+trainer has it (``loss.matchability_after_recall: official``): geometry-only, once the validation feature-match
+recall exceeds 0.3 (Predator's schedule); with lifted 2D features, from the first step (PCR-CG's trainer).
 """
 
 from __future__ import annotations
@@ -215,7 +216,9 @@ class PCRCGModule(L.LightningModule):
         self.loss_cfg = LossConfig.from_mapping(model.get("loss"))
         self.criterion = PredatorLoss(self.loss_cfg, float(model["voxel_size"]))
         self.optim_cfg = OptimConfig.from_mapping(optim)
-        gate = 1.0 if self.loss_cfg.matchability_after_recall <= 0 else 0.0
+        # the validation recall above which the matchability loss is on (0: always), as the run's official trainer
+        self.matchability_after = self.loss_cfg.matchability_threshold(lifted > 0)
+        gate = 1.0 if self.matchability_after <= 0 else 0.0
         self.register_buffer("matchability_gate", torch.tensor(gate))
         self.skipped_pairs = 0
         self._val_recalls: list[float] = []
@@ -324,7 +327,7 @@ class PCRCGModule(L.LightningModule):
         recalls, self._val_recalls = self._val_recalls, []
         if self._trainer is not None and self.trainer.sanity_checking:
             return
-        thr = self.loss_cfg.matchability_after_recall
+        thr = self.matchability_after
         if recalls and thr > 0:
             # Predator: the matchability loss is on while the validation recall is above the threshold
             self.matchability_gate.fill_(1.0 if float(np.mean(recalls)) > thr else 0.0)

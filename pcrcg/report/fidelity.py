@@ -76,6 +76,12 @@ SETTINGS: tuple[Setting, ...] = (
             {"with_replacement": "fragments with fewer than N points resampled with replacement",
              "whole": "fragments with fewer than N points used whole"}),
     Setting("model.loss.log_scale", "circle-loss scale", None, "16", {}, _predator),
+    Setting("model.loss.matchability_after_recall", "matchability loss", None, "official",
+            {"official": "the matchability loss as each official trainer (with 2D features: from the first step)",
+             "0.3": "the matchability loss only after a validation feature recall above 0.3 (Predator's schedule; "
+                    "PCR-CG's trainer has it from the first step)",
+             "0.0": "the matchability loss from the first step (as PCR-CG's trainer)"},
+            lambda r: _color(r) and _predator(r)),
     Setting("projection.combine", "several views", "mean", "overwrite",
             {"overwrite": "several views: the first that sees a point gives its feature",
              "mean": "several views: features averaged"}, lambda r: _color(r) and _learned(r)),

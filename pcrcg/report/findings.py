@@ -387,7 +387,7 @@ class TrainingRow:
 
     def gate_text(self) -> str:
         if self.threshold is not None and self.threshold <= 0:
-            return "on from the start (threshold 0)"
+            return "on from the first step"
         if self.gate_total == 0:
             return DASH
         if self.gate_on == 0:
@@ -417,6 +417,18 @@ def _earlier_parts(run: pd.Series, runs: pd.DataFrame) -> list[str]:
     return [str(r) for r in same.sort_values("start_time")["run_id"]]
 
 
+def _threshold(row: pd.Series | None) -> float | None:
+    """The run's validation recall above which its matchability loss was on (0: from the first step), its logged
+    ``model.loss.matchability_after_recall`` resolved as the run resolved it (``official``: by whether it lifted 2D
+    features, :meth:`pcrcg.models.losses.LossConfig.matchability_threshold`)."""
+    from pcrcg.models.losses import OFFICIAL, PREDATOR_MATCHABILITY_AFTER_RECALL
+
+    if row is not None and row.get(f"params.{THRESHOLD}") == OFFICIAL:
+        lifted = str(row.get("params.features.name")) not in ("none", "None", "nan")
+        return 0.0 if lifted else PREDATOR_MATCHABILITY_AFTER_RECALL
+    return _number(row, f"params.{THRESHOLD}")
+
+
 def _curve(history: Any, run_ids: Sequence[str], key: str) -> list[tuple[int, float]]:
     """Metric ``key`` over the parts of one training (oldest first): at a step that several parts logged, the
     latest part's value (it went on from there)."""
@@ -441,7 +453,7 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
                 continue
             tr = TrainingRow(list(rs.names), rs.experiment, rs.job, seed, run_id,
                              recall_last=_number(row, f"metrics.{VAL_RECALL}"),
-                             threshold=_number(row, f"params.{THRESHOLD}"),
+                             threshold=_threshold(row),
                              overlap_recall=_number(row, f"metrics.{OVERLAP_RECALL}"),
                              coverage=_number(row, f"metrics.{COVERAGE}"))
             parts = [*_earlier_parts(row, runs), run_id]
@@ -456,8 +468,10 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
 TRAINING_INTRO = (
     "Each learned run behind the rows: its validation feature-match recall (the share of sampled validation "
     "correspondences whose nearest descriptor is a true match, Predator's training `recall`) at the last "
-    "validation and the best one; the validations after which the matchability loss was on (Predator's schedule, as "
-    "its official trainer: on while that recall is above `model.loss.matchability_after_recall`, 0.3); the overlap "
+    "validation and the best one; the validations after which the matchability loss was on "
+    "(`model.loss.matchability_after_recall`: `official`, as each official trainer, is Predator's schedule, on while "
+    "that recall is above 0.3, geometry only and on from the first step with 2D features, as PCR-CG's; a number, "
+    "that threshold); the overlap "
     "head's validation recall; and the share of the test points that the lifted 2D features reach. A run whose "
     "recall never passes the threshold trains without the matchability loss: its backbone never learns from that "
     "loss, and its matchability head gives every point the same score, so that its evaluation samples points by "
