@@ -522,6 +522,8 @@ def test_the_findings_say_how_each_rows_model_trained_and_join_a_resumed_trainin
     assert "| Predator | `main_results` features=none | 0 | 36.0% (36.0%) | on from step 299 (3 of 4 validations) | 60.0% | — |" in md
     assert ("| PCR-CG, deep/explicit, Pri3D, 11x11 | `main_results` features=deep | 0 | 20.0% (20.0%) | never on "
             "(0 of 2 validations) | 60.0% | 12.7% |") in md
+    assert pred.curve == [(149, 0.2), (299, 0.31), (449, 0.33), (599, 0.36)] and pred.on_steps == [299, 449, 599]
+    assert (out / "findings_training.png").stat().st_size > 10_000 and "](findings_training.png)" in md
     table = pd.read_csv(out / "findings_training.csv")
     assert list(table["rows"]) == ["Predator", "PCR-CG; deep/explicit; Pri3D; 11x11"] and list(table["gate_on"]) == [3, 0]
     assert TrainingRow([], "e", "j", "0", "r", threshold=0.0).gate_text() == "on from the first step"

@@ -102,3 +102,41 @@ def plot_findings(filled: Any, path: str | Path) -> Path | None:
     fig.subplots_adjust(left=3.4 / fig.get_figwidth(), right=0.98, top=1 - 0.35 / height,
                         bottom=0.75 / height, wspace=0.08)
     return save_figure(fig, path, dpi=110)
+
+
+def plot_training(rows: Sequence[Any], path: str | Path) -> Path | None:
+    """``findings_training.png``: each run's validation feature recall over its training steps (one line per run,
+    one color per job), a filled marker at each validation after which its matchability loss was on (from the
+    first step: every marker filled), and the threshold of Predator's schedule (a dashed line, where a run has one).
+    ``rows``: :class:`pcrcg.report.findings.TrainingRow`; None when no run has a curve."""
+    rows = [r for r in rows if r.curve]
+    if not rows:
+        return None
+    plt = pyplot()
+    jobs = list(dict.fromkeys((r.experiment, r.job) for r in rows))
+    cmap = plt.get_cmap("tab10")
+    fig, ax = plt.subplots(figsize=(9.0, 4.2))
+    labelled: set[tuple[str, str]] = set()
+    for r in rows:
+        key = (r.experiment, r.job)
+        color = cmap(jobs.index(key) % 10)
+        steps = [s for s, _ in r.curve]
+        vals = [100 * v for _, v in r.curve]
+        name = ", ".join(r.names)
+        ax.plot(steps, vals, color=color, lw=1.2, label=None if key in labelled else name)
+        labelled.add(key)
+        on = set(r.on_steps) if r.threshold is None or r.threshold > 0 else set(steps)
+        for s, v in zip(steps, vals):
+            ax.plot([s], [v], marker="o", ms=4, color=color, markerfacecolor=color if s in on else "white")
+    thresholds = sorted({r.threshold for r in rows if r.threshold is not None and r.threshold > 0})
+    for t in thresholds:
+        ax.axhline(100 * t, color="#555555", ls="--", lw=0.8)
+        ax.annotate(f"matchability loss on above {100 * t:.0f}%", (ax.get_xlim()[0], 100 * t), xytext=(4, 3),
+                    textcoords="offset points", fontsize=7, color="#555555")
+    ax.set_xlabel("training step")
+    ax.set_ylabel("validation feature recall (%)")
+    ax.set_title("How the rows' models trained (filled: matchability loss on after that validation)", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -384,6 +384,8 @@ class TrainingRow:
     first_on: int | None = None
     overlap_recall: float | None = None
     coverage: float | None = None
+    curve: list[tuple[int, float]] = field(default_factory=list)  # (step, validation feature recall)
+    on_steps: list[int] = field(default_factory=list)  # the validations after which the matchability loss was on
 
     def gate_text(self) -> str:
         if self.threshold is not None and self.threshold <= 0:
@@ -457,9 +459,10 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
                              overlap_recall=_number(row, f"metrics.{OVERLAP_RECALL}"),
                              coverage=_number(row, f"metrics.{COVERAGE}"))
             parts = [*_earlier_parts(row, runs), run_id]
-            tr.recall_best = max((v for _, v in _curve(history, parts, VAL_RECALL)), default=tr.recall_last)
+            tr.curve = _curve(history, parts, VAL_RECALL)
+            tr.recall_best = max((v for _, v in tr.curve), default=tr.recall_last)
             gate = _curve(history, parts, GATE)
-            on = [step for step, v in gate if v > 0]
+            on = tr.on_steps = [step for step, v in gate if v > 0]
             tr.gate_total, tr.gate_on, tr.first_on = len(gate), len(on), (on[0] if on else None)
             out.append(tr)
     return out
@@ -493,6 +496,9 @@ def training_markdown(filled: "FilledFindings", heading: str = "###") -> list[st
     for t in filled.training:
         out.append(f"| {', '.join(t.names)} | `{t.experiment}` {t.job} | {t.seed} | {pct(t.recall_last)} "
                    f"({pct(t.recall_best)}) | {t.gate_text()} | {pct(t.overlap_recall)} | {pct(t.coverage)} |")
+    if any(t.curve for t in filled.training):
+        out += ["", f"![Validation feature recall of each run over training, filled where the matchability loss was on]"
+                    f"({TRAINING_FIGURE})"]
     return out + [""]
 
 
@@ -929,6 +935,7 @@ def csv_rows(filled: FilledFindings) -> Iterable[dict]:
 
 
 FIGURE = "findings.png"
+TRAINING_FIGURE = "findings_training.png"
 
 
 def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
@@ -945,10 +952,15 @@ def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
         w.writeheader()
         w.writerows(csv_rows(filled))
     files = [md, tex, path] + ([fig] if fig is not None else [])
-    if filled.training:  # how the rows' models trained, one line per run
+    if filled.training:  # how the rows' models trained, one line per run, and their validation curves
         files.append(out_dir / "findings_training.csv")
-        pd.DataFrame([{**{k: v for k, v in vars(t).items() if k != "names"}, "rows": "; ".join(t.names),
-                       "matchability_loss": t.gate_text()} for t in filled.training]).to_csv(files[-1], index=False)
+        pd.DataFrame([{**{k: v for k, v in vars(t).items() if k not in ("names", "curve", "on_steps")},
+                       "rows": "; ".join(t.names), "matchability_loss": t.gate_text()}
+                      for t in filled.training]).to_csv(files[-1], index=False)
+        from pcrcg.plots.findings import plot_training
+
+        curves = plot_training(filled.training, out_dir / TRAINING_FIGURE)
+        files += [curves] if curves is not None else []
     return files
 
 
