@@ -44,6 +44,8 @@ def test_a_finished_run_is_found_by_its_config_and_code_and_the_rest_is_estimate
     text = render(states, 2, run["code"], uri)
     assert "1 finished, 0 running, 0 stale, 0 older code, 2 to run, 1 same as" in text
     assert "Left: 2 runs" in text and "(1 without an estimate)" in text
+    none_known = render(job_states(planned, {}, run["code"]), 2, run["code"], uri)  # an empty store: no estimate
+    assert "Left: 3 runs, none with an estimate yet" in none_known and "--estimates-from URI" in none_known
     assert run["cpu"] is not None and states[0].cpu_seconds == pytest.approx(run["cpu"])
     assert "| CPU time |" in text and "CPU time: " in text and "(1 of the 1 finished runs logged it" in text
     assert "real scene" not in text.split("|---")[-1]  # no real data named: no line about it

@@ -229,8 +229,10 @@ def render(states: Sequence[JobState], lanes: int, code: str, uri: str) -> str:
     done_s = sum(s.seconds or 0.0 for s in states if s.state == "finished")
     lines += ["", ", ".join(f"{n} {st}" for st, n in counts.items()) + ".",
               f"Finished runs' wall time: {_hms(done_s)} in all." + _cpu_total(states),
-              f"Left: {len(left)} runs, ~{_hms(sum(known))} of run time ({len(left) - len(known)} without an "
-              f"estimate), ~{_hms(sum(known) / max(lanes, 1))} of wall time on {lanes} lane(s)."]
+              (f"Left: {len(left)} runs, ~{_hms(sum(known))} of run time ({len(left) - len(known)} without an "
+               f"estimate), ~{_hms(sum(known) / max(lanes, 1))} of wall time on {lanes} lane(s)." if known else
+               f"Left: {len(left)} runs, none with an estimate yet (no finished run of their jobs here; "
+               "`--estimates-from URI`: another store's runs of the same jobs).")]
     missing = [k for k, s in enumerate(states, 1) if s.real == "no"]
     if missing:
         lines.append(f"Finished but not on the real scene: {', '.join(f'#{k}' for k in missing)} (the sweep evaluates "
