@@ -367,9 +367,9 @@ THRESHOLD = "model.loss.matchability_after_recall"
 @dataclass
 class TrainingRow:
     """How one counted run of a findings job trained: its validation feature-match recall (last and best), the
-    validations after which Predator's schedule had its matchability loss on (``gate_on`` of ``gate_total``, the
-    first at step ``first_on``) under the run's ``threshold``, the overlap head's last validation recall and the
-    lifted features' share of the test points (None: not logged)."""
+    validations after which its matchability loss was on (``gate_on`` of ``gate_total``, the first at step
+    ``first_on``; ``on_steps``) under the run's ``threshold`` (0: on from the first step), its recall ``curve``, the
+    overlap head's last validation recall and the lifted features' share of the test points (None: not logged)."""
 
     names: list[str]
     experiment: str
