@@ -528,6 +528,7 @@ def test_the_findings_say_how_each_rows_model_trained_and_join_a_resumed_trainin
     assert list(table["rows"]) == ["Predator", "PCR-CG; deep/explicit; Pri3D; 11x11"] and list(table["gate_on"]) == [3, 0]
     assert TrainingRow([], "e", "j", "0", "r", threshold=0.0).gate_text() == "on from the first step"
     assert TrainingRow([], "e", "j", "0", "r").gate_text() == DASH  # no curve logged
+    assert TrainingRow([], "e", "j", "0", "r", threshold=0.0, matchability=False).gate_text().startswith("none")
 
 
 def test_the_forest_plot_keeps_our_scale_and_draws_a_far_paper_difference_at_the_edge(tmp_path):

@@ -125,7 +125,7 @@ def plot_training(rows: Sequence[Any], path: str | Path) -> Path | None:
         name = ", ".join(r.names)
         ax.plot(steps, vals, color=color, lw=1.2, label=None if key in labelled else name)
         labelled.add(key)
-        on = set(r.on_steps) if r.threshold is None or r.threshold > 0 else set(steps)
+        on = set(r.on_steps) if not r.matchability or r.threshold is None or r.threshold > 0 else set(steps)
         for s, v in zip(steps, vals):
             ax.plot([s], [v], marker="o", ms=4, color=color, markerfacecolor=color if s in on else "white")
     thresholds = sorted({r.threshold for r in rows if r.threshold is not None and r.threshold > 0})

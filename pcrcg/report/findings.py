@@ -386,8 +386,11 @@ class TrainingRow:
     coverage: float | None = None
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, validation feature recall)
     on_steps: list[int] = field(default_factory=list)  # the validations after which the matchability loss was on
+    matchability: bool = True  # False: a model without Predator's matchability loss (GeoTransformer, CoFiNet)
 
     def gate_text(self) -> str:
+        if not self.matchability:
+            return "none (the model has no matchability loss)"
         if self.threshold is not None and self.threshold <= 0:
             return "on from the first step"
         if self.gate_total == 0:
@@ -461,9 +464,13 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
             parts = [*_earlier_parts(row, runs), run_id]
             tr.curve = _curve(history, parts, VAL_RECALL)
             tr.recall_best = max((v for _, v in tr.curve), default=tr.recall_last)
-            gate = _curve(history, parts, GATE)
-            on = tr.on_steps = [step for step, v in gate if v > 0]
-            tr.gate_total, tr.gate_on, tr.first_on = len(gate), len(on), (on[0] if on else None)
+            tr.matchability = str(row.get("params.model.name")) in ("predator", "None", "nan")
+            if tr.matchability:
+                gate = _curve(history, parts, GATE)
+                on = tr.on_steps = [step for step, v in gate if v > 0]
+                tr.gate_total, tr.gate_on, tr.first_on = len(gate), len(on), (on[0] if on else None)
+            else:
+                tr.threshold = None
             out.append(tr)
     return out
 
