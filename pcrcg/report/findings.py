@@ -379,14 +379,20 @@ class TrainingRow:
     recall_last: float | None = None
     recall_best: float | None = None
     threshold: float | None = None
-    gate_on: int = 0
     gate_total: int = 0
-    first_on: int | None = None
     overlap_recall: float | None = None
     coverage: float | None = None
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, validation feature recall)
     on_steps: list[int] = field(default_factory=list)  # the validations after which the matchability loss was on
     matchability: bool = True  # False: a model without Predator's matchability loss (GeoTransformer, CoFiNet)
+
+    @property
+    def gate_on(self) -> int:
+        return len(self.on_steps)
+
+    @property
+    def first_on(self) -> int | None:
+        return self.on_steps[0] if self.on_steps else None
 
     def gate_text(self) -> str:
         if not self.matchability:
@@ -426,12 +432,18 @@ def _threshold(row: pd.Series | None) -> float | None:
     """The run's validation recall above which its matchability loss was on (0: from the first step), its logged
     ``model.loss.matchability_after_recall`` resolved as the run resolved it (``official``: by whether it lifted 2D
     features, :meth:`pcrcg.models.losses.LossConfig.matchability_threshold`)."""
-    from pcrcg.models.losses import OFFICIAL, PREDATOR_MATCHABILITY_AFTER_RECALL
+    from pcrcg.errors import ConfigError
+    from pcrcg.models.losses import OFFICIAL, LossConfig
 
-    if row is not None and row.get(f"params.{THRESHOLD}") == OFFICIAL:
-        lifted = str(row.get("params.features.name")) not in ("none", "None", "nan")
-        return 0.0 if lifted else PREDATOR_MATCHABILITY_AFTER_RECALL
-    return _number(row, f"params.{THRESHOLD}")
+    setting = OFFICIAL if row is not None and row.get(f"params.{THRESHOLD}") == OFFICIAL else _number(
+        row, f"params.{THRESHOLD}")
+    if setting is None:
+        return None
+    lifted = str(row.get("params.features.name")) not in ("none", "None", "nan")
+    try:
+        return LossConfig(matchability_after_recall=setting).matchability_threshold(lifted)
+    except ConfigError:  # a logged value no run accepts
+        return None
 
 
 def _curve(history: Any, run_ids: Sequence[str], key: str) -> list[tuple[int, float]]:
@@ -449,7 +461,7 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
     from its parts (:func:`_earlier_parts`). ``source``: anything with
     ``metric_history(run_id, key) -> [(step, value), ...]`` (:class:`pcrcg.report.outcomes.OutcomeSource`)."""
     history = getattr(source, "metric_history", None)
-    by_id = {str(r["run_id"]): r for _, r in runs.iterrows()} if len(runs) else {}
+    by_id = getattr(source, "params", None) or ({str(r["run_id"]): r for _, r in runs.iterrows()} if len(runs) else {})
     out = []
     for rs in row_seeds:
         for run_id, seed in sorted(rs.runs.items(), key=lambda kv: (len(kv[1]), kv[1], kv[0])):
@@ -467,8 +479,7 @@ def training_rows(row_seeds: Sequence[RowSeeds], runs: pd.DataFrame, source: Any
             tr.matchability = str(row.get("params.model.name")) in ("predator", "None", "nan")
             if tr.matchability:
                 gate = _curve(history, parts, GATE)
-                on = tr.on_steps = [step for step, v in gate if v > 0]
-                tr.gate_total, tr.gate_on, tr.first_on = len(gate), len(on), (on[0] if on else None)
+                tr.on_steps, tr.gate_total = [step for step, v in gate if v > 0], len(gate)
             else:
                 tr.threshold = None
             out.append(tr)
@@ -961,8 +972,10 @@ def write_findings(filled: FilledFindings, out_dir: Path) -> list[Path]:
     files = [md, tex, path] + ([fig] if fig is not None else [])
     if filled.training:  # how the rows' models trained, one line per run, and their validation curves
         files.append(out_dir / "findings_training.csv")
-        pd.DataFrame([{**{k: v for k, v in vars(t).items() if k not in ("names", "curve", "on_steps")},
-                       "rows": "; ".join(t.names), "matchability_loss": t.gate_text()}
+        cols = ("experiment", "job", "seed", "run_id", "recall_last", "recall_best", "threshold", "gate_on",
+                "gate_total", "first_on", "overlap_recall", "coverage", "matchability")
+        pd.DataFrame([{**{k: getattr(t, k) for k in cols}, "rows": "; ".join(t.names),
+                       "matchability_loss": t.gate_text()}
                       for t in filled.training]).to_csv(files[-1], index=False)
         from pcrcg.plots.findings import plot_training
 
