@@ -113,7 +113,9 @@ class KernelAggregation:
                 col = (rows.index_select(0, order) * k).unsqueeze(1) + torch.arange(k, dtype=rows.dtype,
                                                                                     device=rows.device)
                 crow = _offsets(torch.bincount(cols, minlength=n).to(rows.dtype) * k)
-                values = self._infl_t.t()[order].reshape(-1)
+                # the (K, E) rows gathered along E, then transposed: the same values as indexing the
+                # (E, K) transpose by rows (~3x faster: contiguous reads)
+                values = self._infl_t.index_select(1, order).t().reshape(-1)
                 st = _csr(crow, col.reshape(-1), values, (n, m * k))
                 self._St[st.dtype] = st
                 self._infl_t = self._rows = self._cols = None  # only needed to build S^T
