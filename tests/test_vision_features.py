@@ -175,3 +175,32 @@ def test_deep_extractor_resizes_and_keeps_gradients(pair):
     assert enc.encoder.conv1.weight.grad is not None and enc.encoder.conv1.weight.grad.abs().sum() > 0
     with pytest.raises(ConfigError):
         FeatureExtractor("deep", 16, encoder=enc)  # width must be the encoder's
+
+
+def test_sift_grids_are_memoised_per_view_within_the_bound_and_give_the_same_maps(pair, monkeypatch):
+    """features=sift computes a view's SIFT once (its grid, ~1/16 of the map) and upsamples it at every
+    use: the maps are dense_sift_map's bit for bit; encoder2d.memo_mb bounds the grids kept (the oldest
+    go first), 0 keeps none."""
+    views = list(pair.src_views[:2] + pair.tgt_views[:2])
+    want = [dense_sift_map(v.color, dim=8, step=4) for v in views]
+    calls: list[int] = []
+    grid = features.dense_sift_grid
+    monkeypatch.setattr(features, "dense_sift_grid", lambda color, *a: calls.append(1) or grid(color, *a))
+    ext = build_feature_extractor({"name": "sift", "dim": 8, "step": 4}, {"memo_mb": 1})
+    for rnd in range(3):
+        got = ext(views[:2]) + ext(views[2:]) + ext(views[1:2])
+        assert all(torch.equal(g, w) for g, w in zip(got, want + want[1:2]))
+    assert len(calls) == 4  # each view's SIFT once over the three rounds
+    g_bytes = ext._sift_grids[next(iter(ext._sift_grids))].numel() * 4
+    assert ext._sift_bytes == 4 * g_bytes  # (8, 30, 40) float32 each, far below 1 MB
+    # a bound of two grids: the oldest go; the maps stay the same
+    ext = FeatureExtractor("sift", 8, memo_bytes=2 * g_bytes)
+    calls.clear()
+    assert all(torch.equal(g, w) for g, w in zip(ext(views) + ext(views[2:]), want + want[2:]))
+    assert len(calls) == 4 and list(ext._sift_grids) == [ext._memo_key(v) for v in views[2:]]
+    ext = build_feature_extractor({"name": "sift", "dim": 8, "step": 4}, {"memo_mb": 0})  # no memo
+    calls.clear()
+    assert all(torch.equal(g, w) for g, w in zip(ext(views) + ext(views), want + want))
+    assert len(calls) == 8 and not ext._sift_grids
+    with pytest.raises(ConfigError, match="encoder2d.memo_mb"):
+        build_feature_extractor({"name": "sift"}, {"memo_mb": -1})
