@@ -28,7 +28,10 @@ For every N it reports, per pair and averaged:
 Success = the 3DMatch criterion (``e^T info e / info[0,0] <= 0.2^2`` with ``info`` from the
 pair's ground-truth overlap). Timings are wall-clock, interleaved pair by pair, with
 ``OMP_NUM_THREADS=1`` unless set (one core each: on a shared 2-core machine OpenMP with 2 threads
-made both Open3D and torch many times slower and the figures noisy).
+made both Open3D and torch many times slower and the figures noisy); the identical-correspondence table
+also gives each RANSAC's CPU seconds (the process's, so a library's extra threads count), which a busy
+machine inflates less than wall time: beside two sweep jobs (2026-12-07) the wall-time ratio at N = 500 was
+2.8x where the same calls' CPU-time ratio was ~4.4x.
 """
 
 from __future__ import annotations
@@ -236,9 +239,10 @@ def _identical(p: SimPair, k: int, first, base, corr_cfg, acc: dict, seeds: int,
         for key, fn in (("ov", lambda: ransac(sp, tp, loc, base, seed=rs, device=device)),
                         ("c", lambda: ransac(sp, tp, loc, corr_cfg, seed=rs, device=device)),
                         ("o3d", lambda: ransac_open3d(sp, tp, loc, base, seed=rs))):
-            s0 = time.perf_counter()
+            s0, c0 = time.perf_counter(), time.process_time()
             T = fn().transform
             acc[f"t_s_{key}"].append(time.perf_counter() - s0)
+            acc[f"cpu_s_{key}"].append(time.process_time() - c0)
             acc[f"ok_s_{key}"].append(_success(T, p))
 
 
@@ -253,6 +257,7 @@ def _row(n: int, acc: dict, names: list[str]) -> dict:
         row["speedup_vs_predator"] = m["t_predator"] / m["t_ours"]
     for key, label in (("ov", "same_ours"), ("c", "same_ours_fast"), ("o3d", "same_open3d")):
         row[f"{label}_s"] = m[f"t_s_{key}"]
+        row[f"{label}_cpu_s"] = m[f"cpu_s_{key}"]
         row[f"{label}_rr"] = 100 * m[f"ok_s_{key}"]
     return row
 
@@ -266,7 +271,8 @@ def _full_line(row: dict, names: list[str]) -> str:
 def _identical_line(row: dict) -> str:
     return (f"{row['n_points']:>5} | {row['same_ours_s']:8.4f} {row['same_ours_rr']:5.1f} | {row['same_ours_fast_s']:8.4f} "
             f"{row['same_ours_fast_rr']:5.1f} | {row['same_open3d_s']:8.4f} {row['same_open3d_rr']:5.1f} | "
-            f"{row['same_open3d_s'] / row['same_ours_s']:7.1f}x {row['same_open3d_s'] / row['same_ours_fast_s']:9.1f}x")
+            f"{row['same_open3d_s'] / row['same_ours_s']:7.1f}x {row['same_open3d_s'] / row['same_ours_fast_s']:9.1f}x | "
+            f"{row['same_ours_cpu_s']:8.4f} {row['same_open3d_cpu_s']:8.4f} {row['same_open3d_cpu_s'] / row['same_ours_cpu_s']:7.1f}x")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -294,7 +300,7 @@ def main(argv: list[str] | None = None) -> dict:
           + ("" if args.identical_only else f" | {'speed-up ours':>13}"))
     for n in args.n_points:
         acc: dict[str, list] = {k: [] for k in ["ir"] + [f"t_{k}" for k in names] + [f"ok_{k}" for k in names]
-                                 + ["t_s_ov", "ok_s_ov", "t_s_c", "ok_s_c", "t_s_o3d", "ok_s_o3d"]}
+                                 + [f"{m}_s_{k}" for k in ("ov", "c", "o3d") for m in ("t", "cpu", "ok")]}
         for k, p in enumerate(pairs):
             first = _full_paths(p, k, n, ours, legacy, pred_cfg, acc, args.seed, not args.identical_only)
             _identical(p, k, first, base, corr_cfg, acc, args.seeds, args.device)
@@ -302,7 +308,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(_full_line(rows[-1], names), flush=True)
     print(f"\nIdentical correspondences (the default path's), RANSAC alone, confidence 0.999, {args.seeds} seeds per pair:")
     print(f"{'N':>5} | {'ours s':>8} {'RR %':>5} | {'fast s':>8} {'RR %':>5} | {'Open3D s':>8} {'RR %':>5} | "
-          f"{'O3D/ours':>8} {'O3D/fast':>9}")
+          f"{'O3D/ours':>8} {'O3D/fast':>9} | {'ours cpu':>8} {'O3D cpu':>8} {'O3D/ours':>8}")
     print("\n".join(_identical_line(r) for r in rows))
     tot = {name: sum(r[f"{name}_s_per_pair"] for r in rows) for name in names}
     summary = {
