@@ -257,7 +257,9 @@ def prepare_data(ctx: RunContext) -> Path:
     root = Path(str(data_cfg["root"]))
     if not root.is_absolute():
         data_cfg["root"] = str(ctx.job.base_dir / root)
-    return Path(prepare_dataset(data_cfg, seed=int(ctx.cfg.data_seed)))
+    # a run never replaces a data set made with other parameters (python -m pcrcg.prepare does): the refusal comes
+    # before any work, where a replacement would have generated for hours and then deleted the data set held there
+    return Path(prepare_dataset(data_cfg, seed=int(ctx.cfg.data_seed), replace=False))
 
 
 def train_model(ctx: RunContext) -> TrainOutput:

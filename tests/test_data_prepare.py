@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -23,6 +24,17 @@ from pcrcg.data.synthmatch import SynthConfig, generate_scene
 from pcrcg.errors import ConfigError, DataError
 from pcrcg.geometry import transform_points
 
+
+
+def _marking_job(calls: list):
+    """A stand-in for the generator: records its seed in ``calls`` and writes it to ``marker``."""
+
+    def job(tmp, data_cfg, seed, log):
+        calls.append(seed)
+        (tmp / "marker").write_text(str(seed))
+        return {"pairs": {"3DMatch": 1, "3DLoMatch": 1}}
+
+    return job
 
 def test_tiny_has_train_pairs_and_both_benchmarks(tiny_root):
     stats = read_manifest(tiny_root)["stats"]
@@ -105,12 +117,7 @@ def test_reuse_and_regenerate(tiny_root, tmp_path, monkeypatch):
     root = tmp_path / "d"
     calls = []
 
-    def fake_job(tmp, data_cfg, seed, log):
-        calls.append(seed)
-        (tmp / "marker").write_text(str(seed))
-        return {"pairs": {"3DMatch": 1, "3DLoMatch": 1}}
-
-    monkeypatch.setattr(materialise, "_prepare_synthmatch", fake_job)
+    monkeypatch.setattr(materialise, "_prepare_synthmatch", _marking_job(calls))
     cfg = tiny_data_cfg(root)
     prepare_dataset(cfg, seed=1, log=lambda m: None)
     prepare_dataset(cfg, seed=1, log=lambda m: None)
@@ -402,3 +409,37 @@ def test_real_frames_keep_the_color_camera_and_bad_values_are_named(tmp_path):
     lay = Layout(root)
     Kc = read_intrinsics(lay.color_intrinsics("7-scenes-redkitchen"))
     assert Kc[0, 0] == 525.0 and read_intrinsics(lay.intrinsics("7-scenes-redkitchen"))[0, 0] == 585.0
+
+
+def test_a_run_refuses_a_data_set_made_with_other_parameters_and_prepare_replaces_it(tmp_path, monkeypatch):
+    """``python -m pcrcg.run profile=paper data.root=data/synthmatch-cpu`` generated a paper-sized set for hours and
+    then deleted the cpu one. A run now refuses, before any work, with one line naming data.root and what differs;
+    ``python -m pcrcg.prepare`` (replace=True, its job) still replaces it."""
+    calls = []
+
+    monkeypatch.setattr(materialise, "_prepare_synthmatch", _marking_job(calls))
+    root = tmp_path / "held"
+    prepare_dataset(tiny_data_cfg(root), seed=1, log=lambda m: None)
+    wanted = tiny_data_cfg(root, "profile.synth.width=40")
+    with pytest.raises(ConfigError, match=r"data.root=.*held.*made with other parameters \(seed: 1 -> 2, "
+                                          r"synth.width: \d+ -> 40\).*pcrcg.prepare.*nothing was changed"):
+        prepare_dataset(wanted, seed=2, log=lambda m: None, replace=False)
+    assert calls == [1] and (root / "marker").read_text() == "1"
+    assert read_manifest(root)["params"]["seed"] == 1
+    assert prepare_dataset(tiny_data_cfg(root), seed=1, log=lambda m: None, replace=False) == root  # same: reused
+    assert materialise.param_differences({"a": {"b": 1, "c": 2}, "d": 3}, {"a": {"b": 1, "c": 5}, "e": 4}, limit=2) \
+        == "a.c: 2 -> 5, d: 3 -> (none), 1 more"
+
+    # the run's data stage, through the command line: exit 2, one line, the data set untouched, nothing trained
+    res = subprocess.run([sys.executable, "-m", "pcrcg.run", "profile=tiny", f"data.root={root}", "profile.synth.width=40",
+                          f"hydra.run.dir={tmp_path}/out", f"paths.checkpoints={tmp_path}/ckpt"], cwd=REPO,
+                         capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path}/mlflow.db"})
+    err = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and err[-1].startswith("pcrcg.run: error: invalid config value data.root="), err[-3:]
+    assert "synth.width" in err[-1] and "seed: 1 -> 0" in err[-1]
+    assert (root / "marker").read_text() == "1" and read_manifest(root)["params"]["seed"] == 1
+    assert not (tmp_path / "ckpt").exists() and not list(tmp_path.glob("held.tmp-*"))
+
+    prepare_dataset(wanted, seed=2, log=lambda m: None)  # python -m pcrcg.prepare's call: replaced
+    assert calls == [1, 2] and (root / "marker").read_text() == "2"

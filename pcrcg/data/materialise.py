@@ -4,9 +4,13 @@ the real 3DMatch release (threedmatch).
 Writes happen in ``<root>.tmp-<pid>`` which is renamed into place only when complete, with a
 ``manifest.json`` holding the parameters' hash and the statistics; an interrupted run never leaves
 a data set that looks finished. A finished data set with the same parameters is reused; one of the
-same source with different parameters is replaced (only after the new one is complete). Nothing else
-is ever replaced: a ``data.root`` that holds files and no manifest (a user's folder), or a data set of
-another source (the real 3DMatch scene under a generated config), is refused before any work starts.
+same source with different parameters is replaced (only after the new one is complete) when the caller
+asks for that (``python -m pcrcg.prepare``, whose job it is), and refused before any work starts when it
+does not (a run: ``python -m pcrcg.run profile=paper data.root=data/synthmatch-cpu`` would otherwise spend
+hours generating a paper-sized set and then delete the cpu one; the one-line error names the parameters
+that differ and the command that replaces it). Nothing else is ever replaced: a ``data.root`` that holds
+files and no manifest (a user's folder), or a data set of another source (the real 3DMatch scene under a
+generated config), is refused before any work starts.
 """
 
 from __future__ import annotations
@@ -91,8 +95,11 @@ def read_manifest(root: Path) -> dict | None:
         return None
 
 
-def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = False, log: Callable[[str], None] = print) -> Path:
-    """Materialise the data set described by ``data_cfg`` (the ``data`` config node); returns its root."""
+def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = False, log: Callable[[str], None] = print,
+                    replace: bool = True) -> Path:
+    """Materialise the data set described by ``data_cfg`` (the ``data`` config node); returns its root.
+    ``replace=False``: a finished data set of the same source made with other parameters is refused (a
+    :class:`ConfigError` naming ``data.root`` and the parameters that differ) instead of replaced."""
     name = data_cfg.get("name")
     if name not in SOURCES:
         raise ConfigError("data.name", name, f"one of {SOURCES}")
@@ -117,6 +124,8 @@ def prepare_dataset(data_cfg: Mapping[str, Any], seed: int = 0, force: bool = Fa
         log(f"[prepare] {root} is up to date (params {h}); reusing it")
         return root
     _check_replaceable(root, name, man)
+    if man is not None and not replace:
+        _refuse_other_params(root, man.get("params") or {}, params)
     if name == "synthmatch":
         job = lambda tmp: _prepare_synthmatch(tmp, data_cfg, seed, log)  # noqa: E731
     elif name == "redkitchen":
@@ -151,6 +160,36 @@ def _check_replaceable(root: Path, name: str, manifest: dict | None) -> None:
                           f"a folder for a {name} data set: it holds a {held} data set (its manifest.json), which "
                           f"a {name} config does not replace; choose another data.root, or data={held} to use it "
                           "(nothing was changed)")
+
+
+def _flat(params: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in params.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def param_differences(held: Mapping[str, Any], wanted: Mapping[str, Any], limit: int = 4) -> str:
+    """The parameters that differ between a data set's manifest ``held`` and the config's ``wanted``, as
+    ``key: held -> wanted`` (dotted keys, sorted; at most ``limit``, then how many more)."""
+    a, b = _flat(held), _flat(wanted)
+    keys = sorted(k for k in set(a) | set(b) if json.dumps(a.get(k), default=str) != json.dumps(b.get(k), default=str))
+    shown = [f"{k}: {a.get(k, '(none)')} -> {b.get(k, '(none)')}" for k in keys[:limit]]
+    if len(keys) > limit:
+        shown.append(f"{len(keys) - limit} more")
+    return ", ".join(shown) or "the parameters' hash"
+
+
+def _refuse_other_params(root: Path, held: Mapping[str, Any], wanted: Mapping[str, Any]) -> None:
+    """One line naming ``data.root``: it holds a finished data set made with other parameters, which only
+    ``python -m pcrcg.prepare`` replaces."""
+    raise ConfigError("data.root", str(root),
+                      f"a new folder or a data set of this config; it holds one made with other parameters "
+                      f"({param_differences(held, wanted, limit=3)}) that a run does not replace: choose another "
+                      f"data.root, or replace it with python -m pcrcg.prepare (nothing was changed)")
 
 
 def _remove_stale_temps(root: Path, log) -> None:
