@@ -42,6 +42,8 @@ def test_freed_memory_is_kept_so_large_allocations_stop_faulting_pages():
     assert kept["kept"] is True and kept["again"] is True and off["kept"] is False
     if plain["faults"] < 20 * 10_000:  # a kernel that backs such blocks with huge pages: few faults either way
         pytest.skip(f"{plain['faults']} page faults for 20 fresh 64 MB blocks: nothing to compare here")
-    # glibc maps each 64 MB block afresh: ~16k faults per allocation; kept, the heap's pages are reused
-    assert kept["faults"] < 2_000
+    # glibc maps each 64 MB block afresh: ~16k faults per allocation; kept, the heap's pages are reused. A small
+    # allocation that lands in a freed block can make the next 64 MB one grow the heap once more (CI of f88330c, under
+    # the parallel suite: 16,384 faults, one block): a few such blocks of the 20 at most
+    assert kept["faults"] < 3 * 16_384 < plain["faults"] // 4
     assert off["faults"] > 20 * 10_000
