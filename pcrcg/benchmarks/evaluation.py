@@ -116,11 +116,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--distance", type=float, default=0.12, help="RANSAC distance, m (the cpu profile's: 2x 6 cm)")
     args = p.parse_args(argv)
 
-    import torch
+    from pcrcg.device import cpu_threads
 
+    # one thread for torch and the native pools, as a cpu-profile run (trainer.num_threads: 1): with torch's alone
+    # limited, the shortcuts' NumPy products ran OpenBLAS on both cores (2026-12-07: 0.265 s of wall for 0.488 s of
+    # CPU per pair after, so the wall-time speed-up counted a second core that a run does not use)
+    with cpu_threads(1):
+        _main(args)
+
+
+def _main(args: argparse.Namespace) -> None:
     from pcrcg.models.train import load_module
-
-    torch.set_num_threads(1)
 
     module = load_module(args.checkpoint, "cpu")
     extractor = module.lifter.extractor if module.lifter is not None else None

@@ -97,17 +97,16 @@ def training_step(profile: str, color: str, pairs: int, reps: int) -> dict[str, 
 def evaluation(checkpoint: str, root: str, pairs: int) -> dict[str, Any]:
     """Inference seconds per pair and :func:`pcrcg.benchmarks.evaluation.registration_speed` at the run's
     budget, with the checkpoint's own RANSAC distance (2x its voxel) and the paper's ranking (overlap)."""
-    import torch
-
     from pcrcg.benchmarks.evaluation import infer_outputs, registration_speed
+    from pcrcg.device import cpu_threads
     from pcrcg.models.train import load_module
 
-    torch.set_num_threads(1)
-    module = load_module(checkpoint, "cpu")
-    outs, s_infer, cpu_infer = infer_outputs(module, root, pairs)
-    distance = 2.0 * float(module.hparams["model"]["voxel_size"])  # the run's eval.ransac_distance
-    return {"infer_s_per_pair": s_infer, "infer_cpu_s_per_pair": cpu_infer, "pairs": len(outs), "distance": distance,
-            "registration": registration_speed(outs, distance)}
+    with cpu_threads(1):  # torch's and the native pools, as a cpu-profile run (python -m pcrcg.benchmarks.evaluation)
+        module = load_module(checkpoint, "cpu")
+        outs, s_infer, cpu_infer = infer_outputs(module, root, pairs)
+        distance = 2.0 * float(module.hparams["model"]["voxel_size"])  # the run's eval.ransac_distance
+        return {"infer_s_per_pair": s_infer, "infer_cpu_s_per_pair": cpu_infer, "pairs": len(outs),
+                "distance": distance, "registration": registration_speed(outs, distance)}
 
 
 # --------------------------------------------------------------------------- 3. whole runs
