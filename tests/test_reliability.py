@@ -281,6 +281,8 @@ def test_stale_running_runs_are_closed_on_relaunch_and_left_out_of_the_report(tm
     other = tracker.start("other", {TAG_HASH: "0" * 16, TAG_PID: str(_dead_pid())})
     assert set(load_runs(uri, ["default"])["run_id"]) == {alive}  # the report leaves stale runs out
     assert owner_tags()[TAG_PID] == str(os.getpid())
+    tags = tracked_runs(uri, "default")[0].data.tags  # the machine that computed it (runs differ across CPU types)
+    assert tags["pcrcg.cpu"] and tags["pcrcg.cpu"] != "unknown" and tags["pcrcg.cpu_capability"] not in ("", "None")
     out = run_job(cfg, JobInfo(output_dir=tmp_path / "out", base_dir=tmp_path))
     assert out.status == "finished"
     runs = {r.info.run_id: r for r in tracked_runs(uri, "default")}

@@ -304,10 +304,12 @@ def code_store(tmp_path_factory):
     ensure_store(uri)
     client = MlflowClient(uri)
     exp = ensure_experiment(client, "window_size", uri)
+    machine = {"A": ("AMD EPYC 7B13", "AVX2"), "B": ("Intel(R) Xeon(R) Processor", "AVX512")}
     for t, (code, seed, rr) in enumerate((("A", 0, 40.0), ("A", 1, 50.0), ("B", 0, 70.0))):
         run = client.create_run(exp, start_time=1_000_000 + 1000 * t, run_name="window_size=3",
                                 tags={"experiment": "window_size", "config_hash": f"h{seed}", "profile": "cpu",
-                                      "git_sha": "c" * 40, "code_version": code})
+                                      "git_sha": "c" * 40, "code_version": code, "pcrcg.cpu": machine[code][0],
+                                      "pcrcg.cpu_capability": machine[code][1]})
         for key, value in (("window_size", "3"), ("seed", str(seed)), ("encoder2d.name", "pri3d"),
                            ("registration.ransac.score", "overlap")):
             client.log_param(run.info.run_id, key, value)
@@ -331,7 +333,27 @@ def test_the_identity_setting_picks_the_runs_of_a_cell_and_the_table_says_which(
     md = (out / "window_size.md").read_text()
     codes = "B (1 run)" if identity == "config_and_code" else "A (1 run), B (1 run)"
     assert f"{rule}" in md and f"code versions behind the cells: {codes}." in md
+    intel, amd = "Intel(R) Xeon(R) Processor (AVX512) (1 run)", "AMD EPYC 7B13 (AVX2) (1 run)"
+    machines = intel if identity == "config_and_code" else sorted([intel, amd])
+    assert all(m in md for m in ([machines] if isinstance(machines, str) else machines))
+    assert "Machines behind them: " in md and (identity == "config" or "AMD" not in md)
     assert f"`identity={identity}`" in (out / "README.md").read_text()
+
+
+def test_run_machine_reads_the_machine_tags_and_says_unrecorded_before_them():
+    from pcrcg.report.tables import machines_text, run_machine
+    from pcrcg.tracking.tracker import machine_tags
+
+    df = pd.DataFrame({"tags.pcrcg.cpu": ["Intel(R) Xeon(R) Processor", "AMD EPYC 7B13", None],
+                       "tags.pcrcg.cpu_capability": ["AVX512", None, None],
+                       "tags.pcrcg.cuda": [None, "NVIDIA H100 80GB HBM3", None]})
+    assert list(run_machine(df)) == ["Intel(R) Xeon(R) Processor (AVX512)", "AMD EPYC 7B13 + NVIDIA H100 80GB HBM3",
+                                     "unrecorded"]
+    assert list(run_machine(pd.DataFrame({"x": [1]}))) == ["unrecorded"]
+    assert machines_text({}) == "" and machines_text({"m": 2, "n": 1}) == " Machines behind them: m (2 runs), n (1 run)."
+    tags = machine_tags()  # this machine's
+    assert tags["pcrcg.cpu"] and tags["pcrcg.cpu_capability"] and run_machine(
+        pd.DataFrame({f"tags.{k}": [v] for k, v in tags.items()}))[0].startswith(tags["pcrcg.cpu"])
 
 
 def test_a_bad_identity_is_one_line_naming_the_setting(code_store):

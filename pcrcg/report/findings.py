@@ -45,7 +45,8 @@ from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_ord
                                     select_columns)
 from pcrcg.report.spec import Column, Comparison, Row, TableSpec, report_where, run_command, with_defaults
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
-from pcrcg.report.tables import FilledTable, _paper_value, fill_table, paper_values, run_code
+from pcrcg.report.tables import (FilledTable, _paper_value, fill_table, machines_text, paper_values, run_code,
+                                 run_machine)
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
 NOT_RESOLVED = "not resolved"
@@ -529,6 +530,7 @@ class FilledFindings:
     codes: dict[str, int] = field(default_factory=dict)
     row_seeds: list[RowSeeds] = field(default_factory=list)
     training: list[TrainingRow] = field(default_factory=list)
+    machines: dict[str, int] = field(default_factory=dict)  # machine (run_machine) -> runs of it behind the findings
 
     def missing_runs(self) -> list[tuple[RowSeeds, list[int]]]:
         """Each job with seeds of ``spec.seeds`` that no counted run has, and those seeds."""
@@ -558,7 +560,7 @@ class FilledFindings:
         scope = (f"; a row counts only runs with {where} unless it sets the key itself (the report-wide `where`"
                  + (f": the runs of registration={self.spec.registration}" if self.spec.registration else "")
                  + ")") if where else ""
-        return f"Runs counted: {rule}{scope}; code versions behind the findings: {codes}."
+        return f"Runs counted: {rule}{scope}; code versions behind the findings: {codes}.{machines_text(self.machines)}"
 
 
 def line_verdict(sign: int, line: OrderingLine) -> str:
@@ -695,8 +697,10 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
                         fl.real_note = f"no interval on {spec.real}: {r.reason}"
             lines.append(fl)
     codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
+    machines = run_machine(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
     return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()},
-                          list(row_seeds.values()), training_rows(list(row_seeds.values()), runs, source))
+                          list(row_seeds.values()), training_rows(list(row_seeds.values()), runs, source),
+                          {str(m): int(n) for m, n in machines.items()})
 
 
 ABOVE, BELOW, WITHIN = "above", "below", "within"

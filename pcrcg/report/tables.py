@@ -88,6 +88,7 @@ class FilledTable:
     identity: str = DEFAULT_IDENTITY  # which runs counted as the same: config_and_code | config
     codes: dict[str, int] = field(default_factory=dict)  # code version -> runs of it behind the cells
     shared: list[str] = field(default_factory=list)  # rows that also count another experiment's runs (same_as)
+    machines: dict[str, int] = field(default_factory=dict)  # machine (run_machine) -> runs of it behind the cells
 
     def identity_text(self) -> str:
         """Which runs a cell counts, and the code versions behind the table."""
@@ -95,7 +96,7 @@ class FilledTable:
                 "its newest run's" if same_code(self.identity) else
                 "same config (identity=config): each cell's seeds may come from different code versions")
         codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
-        return f"Runs counted: {rule}; code versions behind the cells: {codes}."
+        return f"Runs counted: {rule}; code versions behind the cells: {codes}.{machines_text(self.machines)}"
 
     def cell(self, row: Row, col: Column) -> Cell:
         for c in self.cells:
@@ -172,6 +173,31 @@ def _paper_value(values: Mapping[PaperKey, float], table: str, row: Row, col: Co
     variant = col.variant or row.variant
     n = None if col.n_points is None else float(col.n_points)
     return values.get((table, row.method, variant, col.benchmark, col.metric, n))
+
+
+def run_machine(df: pd.DataFrame) -> pd.Series:
+    """Each run's machine: ``<CPU model> (<torch's CPU kernels>)`` and ``+ <CUDA device>`` from its tags
+    (:func:`pcrcg.tracking.tracker.machine_tags`); ``unrecorded`` for runs made before those tags."""
+    out = pd.Series("unrecorded", index=df.index, dtype=object)
+    if "tags.pcrcg.cpu" not in df.columns:
+        return out
+    none = pd.Series(None, index=df.index, dtype=object)
+    cap = df["tags.pcrcg.cpu_capability"] if "tags.pcrcg.cpu_capability" in df.columns else none
+    cuda = df["tags.pcrcg.cuda"] if "tags.pcrcg.cuda" in df.columns else none
+    for i in df.index:
+        cpu = df.at[i, "tags.pcrcg.cpu"]
+        if isinstance(cpu, str) and cpu:
+            text = cpu + (f" ({cap[i]})" if isinstance(cap[i], str) and cap[i] else "")
+            out[i] = text + (f" + {cuda[i]}" if isinstance(cuda[i], str) and cuda[i] else "")
+    return out
+
+
+def machines_text(machines: Mapping[str, int]) -> str:
+    """`` Machines behind them: A (n runs), ...`` (runs of one config and seed differ between CPU types), or
+    ``""``."""
+    if not machines:
+        return ""
+    return " Machines behind them: " + ", ".join(f"{m} ({n} run{'s' if n > 1 else ''})" for m, n in machines.items()) + "."
 
 
 def run_code(df: pd.DataFrame) -> pd.Series:
@@ -309,8 +335,10 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
 
     fidelity = fidelity_lines(runs[runs["run_id"].isin(used)]) if used else []
     codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
+    machines = run_machine(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
     return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity,
-                       identity=identity, codes={str(c): int(n) for c, n in codes.items()}, shared=shared)
+                       identity=identity, codes={str(c): int(n) for c, n in codes.items()}, shared=shared,
+                       machines={str(m): int(n) for m, n in machines.items()})
 
 
 def _experiment_runs(runs: pd.DataFrame, experiment: str, profile: str | None) -> pd.DataFrame:
