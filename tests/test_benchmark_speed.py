@@ -159,3 +159,28 @@ def test_ransac_lines_say_which_n_meet_the_target():
     lines = ransac_lines(rows)
     assert lines[2] == "| 5000 | 0.0300 (0.0200) | 68.8 | 0.1200 (0.1000) | 72.9 | 4.0x | met (>= 3x) | 5.0x | met |"
     assert lines[3].endswith("| 2.0x | missed (>= 3x) | 4.0x | met |")  # wall and CPU time can disagree
+
+
+def test_evaluation_is_timed_at_one_thread_of_torch_and_of_the_native_pools(monkeypatch):
+    """A run evaluates with torch and the native pools (OpenBLAS, OpenMP) at one thread; the benchmark left
+    OpenBLAS at its default, which ran the new code's products on both cores (0.488 s of CPU for 0.265 s of wall
+    per pair). Both evaluation benchmarks now time inside the run's limits."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from pcrcg.benchmarks import evaluation as ev
+
+    seen = []
+
+    def fake_registration_speed(outs, distance, *args):
+        seen.append((torch.get_num_threads(), [p["num_threads"] for p in threadpool_info()]))
+        return {}
+
+    monkeypatch.setattr("pcrcg.models.train.load_module",
+                        lambda ckpt, device: type("M", (), {"hparams": {"model": {"voxel_size": 0.06}}})())
+    monkeypatch.setattr(ev, "infer_outputs", lambda module, root, pairs, *a: ([], 0.0, 0.0))
+    monkeypatch.setattr(ev, "registration_speed", fake_registration_speed)
+    got = speed.evaluation("model.ckpt", "data", 2)
+    assert got["distance"] == pytest.approx(0.12) and seen
+    torch_threads, pools = seen[0]
+    assert torch_threads == 1 and pools and all(n == 1 for n in pools), seen
