@@ -25,7 +25,6 @@ from pcrcg.errors import ConfigError, DataError
 from pcrcg.geometry import transform_points
 
 
-
 def _marking_job(calls: list):
     """A stand-in for the generator: records its seed in ``calls`` and writes it to ``marker``."""
 
@@ -35,6 +34,7 @@ def _marking_job(calls: list):
         return {"pairs": {"3DMatch": 1, "3DLoMatch": 1}}
 
     return job
+
 
 def test_tiny_has_train_pairs_and_both_benchmarks(tiny_root):
     stats = read_manifest(tiny_root)["stats"]

@@ -45,8 +45,8 @@ from pcrcg.report.orderings import (MEAN, OrderingLine, StatsSettings, check_ord
                                     select_columns)
 from pcrcg.report.spec import Column, Comparison, Row, TableSpec, report_where, run_command, with_defaults
 from pcrcg.report.stats import HOLDS, REVERSED, seed_rule_text
-from pcrcg.report.tables import (FilledTable, _paper_value, fill_table, machines_text, paper_values, run_code,
-                                 run_machine)
+from pcrcg.report.tables import (FilledTable, _paper_value, counted_text, fill_table, machines_text, paper_values,
+                                 run_code, run_counts, run_machine)
 from pcrcg.tracking.git import DEFAULT_IDENTITY, same_code
 
 NOT_RESOLVED = "not resolved"
@@ -555,12 +555,12 @@ class FilledFindings:
         rule = ("same config and code (identity=config_and_code): each row counts the runs of one code version, "
                 "its newest run's" if same_code(self.identity) else
                 "same config (identity=config): a row's seeds may come from different code versions")
-        codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
         where = ", ".join(f"{k}={v}" for k, v in self.spec.where.items())
         scope = (f"; a row counts only runs with {where} unless it sets the key itself (the report-wide `where`"
                  + (f": the runs of registration={self.spec.registration}" if self.spec.registration else "")
                  + ")") if where else ""
-        return f"Runs counted: {rule}{scope}; code versions behind the findings: {codes}.{machines_text(self.machines)}"
+        return (f"Runs counted: {rule}{scope}; code versions behind the findings: {counted_text(self.codes)}."
+                f"{machines_text(self.machines)}")
 
 
 def line_verdict(sign: int, line: OrderingLine) -> str:
@@ -696,11 +696,9 @@ def fill_findings(spec: FindingsSpec, runs: pd.DataFrame, paper: pd.DataFrame, p
                     else:
                         fl.real_note = f"no interval on {spec.real}: {r.reason}"
             lines.append(fl)
-    codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
-    machines = run_machine(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
-    return FilledFindings(spec, lines, dict(profiles), identity, {str(c): int(n) for c, n in codes.items()},
+    return FilledFindings(spec, lines, dict(profiles), identity, run_counts(run_code, runs, used),
                           list(row_seeds.values()), training_rows(list(row_seeds.values()), runs, source),
-                          {str(m): int(n) for m, n in machines.items()})
+                          run_counts(run_machine, runs, used))
 
 
 ABOVE, BELOW, WITHIN = "above", "below", "within"

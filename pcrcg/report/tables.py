@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import pandas as pd
@@ -95,8 +95,8 @@ class FilledTable:
         rule = ("same config and code (identity=config_and_code): each cell counts the runs of one code version, "
                 "its newest run's" if same_code(self.identity) else
                 "same config (identity=config): each cell's seeds may come from different code versions")
-        codes = ", ".join(f"{c} ({n} run{'s' if n > 1 else ''})" for c, n in self.codes.items()) or "none"
-        return f"Runs counted: {rule}; code versions behind the cells: {codes}.{machines_text(self.machines)}"
+        return (f"Runs counted: {rule}; code versions behind the cells: {counted_text(self.codes)}."
+                f"{machines_text(self.machines)}")
 
     def cell(self, row: Row, col: Column) -> Cell:
         for c in self.cells:
@@ -192,12 +192,23 @@ def run_machine(df: pd.DataFrame) -> pd.Series:
     return out
 
 
+def run_counts(label: Callable[[pd.DataFrame], pd.Series], runs: pd.DataFrame, used: set[str]) -> dict[str, int]:
+    """How many of the runs ``used`` (run ids) carry each label that ``label`` gives (:func:`run_code`,
+    :func:`run_machine`)."""
+    if not used:
+        return {}
+    return {str(k): int(n) for k, n in label(runs[runs["run_id"].isin(used)]).value_counts().items()}
+
+
+def counted_text(counts: Mapping[str, int]) -> str:
+    """``A (2 runs), B (1 run)``, or ``none``."""
+    return ", ".join(f"{k} ({n} run{'s' if n > 1 else ''})" for k, n in counts.items()) or "none"
+
+
 def machines_text(machines: Mapping[str, int]) -> str:
     """`` Machines behind them: A (n runs), ...`` (runs of one config and seed differ between CPU types), or
     ``""``."""
-    if not machines:
-        return ""
-    return " Machines behind them: " + ", ".join(f"{m} ({n} run{'s' if n > 1 else ''})" for m, n in machines.items()) + "."
+    return f" Machines behind them: {counted_text(machines)}." if machines else ""
 
 
 def run_code(df: pd.DataFrame) -> pd.Series:
@@ -334,11 +345,9 @@ def fill_table(spec: TableSpec, runs: pd.DataFrame, paper: pd.DataFrame,
     from pcrcg.report.fidelity import fidelity_lines
 
     fidelity = fidelity_lines(runs[runs["run_id"].isin(used)]) if used else []
-    codes = run_code(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
-    machines = run_machine(runs[runs["run_id"].isin(used)]).value_counts() if used else pd.Series(dtype=int)
     return FilledTable(spec, cells, profiles.get(spec.experiment), coverage, proto, fidelity=fidelity,
-                       identity=identity, codes={str(c): int(n) for c, n in codes.items()}, shared=shared,
-                       machines={str(m): int(n) for m, n in machines.items()})
+                       identity=identity, codes=run_counts(run_code, runs, used), shared=shared,
+                       machines=run_counts(run_machine, runs, used))
 
 
 def _experiment_runs(runs: pd.DataFrame, experiment: str, profile: str | None) -> pd.DataFrame:
