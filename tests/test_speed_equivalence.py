@@ -100,6 +100,40 @@ def test_sparse_influences_are_the_reference_bit_for_bit_and_the_matrices_valid(
     assert torch.equal(agg.backward_matrix(torch.float32).to_dense(), fwd.t())
 
 
+def test_sparse_aggregation_cpu_shortcuts_give_the_integers_and_values_of_the_plain_formulas():
+    """The CPU build's NumPy pair list, radix order and buffered copies against the formulas they replace
+    (torch's sort / nonzero / division, stable argsort, ``repeat`` and ``.t().reshape``): equal bit for bit."""
+    from pcrcg.models.kpconv.aggregation import _real_pairs_cpu, _support_order
+
+    q, s, nb = _geometry(6, strided=True)
+    n = s.shape[0]
+    rows, cols, count = _real_pairs_cpu(nb, n, torch.int32)
+    sorted_nb = torch.sort(nb, dim=1).values
+    valid = sorted_nb < n
+    flat = valid.reshape(-1).nonzero().squeeze(1)
+    assert torch.equal(rows, torch.div(flat, nb.shape[1], rounding_mode="floor").to(torch.int32))
+    assert torch.equal(cols, sorted_nb.reshape(-1).index_select(0, flat).to(torch.int32))
+    assert torch.equal(count, valid.sum(dim=1)) and count.dtype == torch.int64
+    # the stable order by support, on the radix path (n <= 65,536) and on torch's, with many ties
+    rng = np.random.default_rng(0)
+    for high in (50, 70_000):
+        c = torch.from_numpy(rng.integers(0, high, 5000).astype(np.int32))
+        assert torch.equal(_support_order(c, high), torch.argsort(c, stable=True))
+    kernel = torch.from_numpy(kernel_points(15, 0.15, 0))
+    agg = KernelAggregation(q, s, nb, kernel, 0.12)
+    m, k, _ = agg.shape
+    infl, order = agg._infl_t, torch.argsort(cols, stable=True)
+    fwd, bwd = agg.forward_matrix(torch.float32), agg.backward_matrix(torch.float32)
+    assert torch.equal(fwd.col_indices(), cols.repeat(k)) and torch.equal(fwd.values(), infl.reshape(-1))
+    assert torch.equal(bwd.values(), infl.index_select(1, order).t().reshape(-1))
+    assert torch.equal(bwd.col_indices(),
+                       ((rows.index_select(0, order) * k).unsqueeze(1) + torch.arange(k, dtype=torch.int32)).reshape(-1))
+    # the forward's kernel-major rows turned query-major, one channel (a view) and several (a copy)
+    for c in (1, 5):
+        f = torch.randn(n, c, generator=torch.Generator().manual_seed(c))
+        assert torch.equal(agg(f), (fwd @ f).view(k, m, c).transpose(0, 1).reshape(m, k * c))
+
+
 def test_sparse_kpconv_queries_without_neighbours_and_empty_inputs():
     q, s, nb = _geometry(4)
     nb = nb.clone()
