@@ -130,6 +130,24 @@ def test_matching_nearest_neighbour_and_mutual():
     assert match_descriptors(np.zeros((0, 2)), b).shape == (0, 2)
 
 
+def test_matching_blocks_add_into_the_squared_lengths_as_the_plain_formula():
+    """The nearest neighbours of descriptor matching (one product adding into |b|^2 per block) against the
+    plain ``|b|^2 - 2 a.b`` and its arg-min: the same indices (ties included), values equal to rounding."""
+    from pcrcg.device import argmin_rows
+    from pcrcg.registration.matching import _nearest
+
+    gen = torch.Generator().manual_seed(0)
+    for n, m, d in ((700, 650, 32), (129, 40, 16)):
+        a = torch.nn.functional.normalize(torch.randn(n, d, generator=gen), dim=1)
+        b = torch.nn.functional.normalize(torch.randn(m, d, generator=gen), dim=1)
+        b[7] = b[3]  # an exact tie: the first of equal rows wins in both
+        a[:5] = b[3]
+        plain = argmin_rows((b * b).sum(1)[None, :] - 2.0 * (a @ b.T))
+        for chunk in (128, 50, 4096):
+            assert torch.equal(_nearest(a, b, chunk), plain)
+        assert _nearest(a, b, 128)[:5].tolist() == [3] * 5
+
+
 def test_register_features_end_to_end_is_seeded():
     rng = np.random.default_rng(3)
     pts, cols = box_room(rng, 40000)
