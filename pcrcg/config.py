@@ -498,6 +498,8 @@ TRAINER_STRATEGIES = ("auto", "ddp", "ddp_spawn", "ddp_find_unused_parameters_tr
 
 # trainer.optim.name (pcrcg.models.module.OptimConfig) and train.optimizer of pretrain2d (pcrcg.pretrain2d.core)
 OPTIMIZERS = ("sgd", "adam")
+# learning-rate schedules (pcrcg.models.module.OptimConfig): the paper's per-epoch decay, or a cosine over the run
+SCHEDULES = ("exponential", "cosine")
 
 def _optional_int_at_least(low: int):
     """null, or an integer >= ``low`` (``max_steps``: null means no cap; 0 is not "no cap")."""
@@ -585,6 +587,8 @@ GROUP_RULES: dict[str, Any] = {
     "trainer.num_nodes": lambda k, v: _int_at_least(k, v, 1),
     "trainer.strategy": lambda k, v: _one_of(k, v, TRAINER_STRATEGIES),
     "trainer.optim.name": lambda k, v: _one_of(k, v, OPTIMIZERS),
+    "trainer.optim.schedule": lambda k, v: _one_of(k, v, SCHEDULES),
+    "trainer.optim.warmup_steps": lambda k, v: _int_at_least(k, v, 0),
     "trainer.optim.lr": _positive,
     "data.workers": lambda k, v: _int_at_least(k, v, 1),
 }

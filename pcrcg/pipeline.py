@@ -46,7 +46,7 @@ from pcrcg.device import cpu_threads, keep_freed_memory, resolve_device
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
 from pcrcg.tracking.hashing import (COLOR_ONLY, HASH_EXCLUDE, TRAIN_HASH_EXCLUDE, config_hash, data_hash, flatten,
-                                    to_plain, with_weights_digest, without)
+                                    to_plain, with_weights_digest, without, without_added)
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcrcg.tracking.tracker import RunTracker
@@ -326,7 +326,7 @@ def hashed_config(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = 
         data = without(data, COLOR_ONLY)
     if seed_independent(data):
         data = without(data, ("seed",))
-    return with_weights_digest(without(data, exclude), by_bytes=weights_by_bytes)
+    return with_weights_digest(without_added(without(data, exclude)), by_bytes=weights_by_bytes)
 
 
 def config_difference(ours: Mapping[str, Any], theirs: Mapping[str, str], limit: int = 6) -> str:

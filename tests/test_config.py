@@ -83,6 +83,8 @@ def test_defaults_compose_and_validate(conf):
         (["trainer=ddp", "trainer.strategy=dp"], "trainer.strategy", "ddp_spawn"),
         (["trainer.optim.name=lamb"], "trainer.optim.name", "adam"),
         (["trainer.optim.lr=0"], "trainer.optim.lr", "> 0"),
+        (["trainer.optim.schedule=linear"], "trainer.optim.schedule", "exponential, cosine"),
+        (["trainer.optim.warmup_steps=-1"], "trainer.optim.warmup_steps", ">= 0"),
         (["data.version=1"], "data.version", "the data code in this checkout"),
         # rules across groups
         (["features=deep", "projection=none"], "projection", "implicit or explicit"),

@@ -189,7 +189,7 @@ def test_profiles_build_a_model(profile):
     cfg = profile_config(profile)
     m, t = cfg["model"], cfg["trainer"]
     paper_optim = {"name": "sgd", "lr": 0.005, "momentum": 0.98, "weight_decay": 1e-6, "lr_decay": 0.95,
-                   "encoder_lr_scale": 1.0}
+                   "encoder_lr_scale": 1.0, "schedule": "exponential", "warmup_steps": 0}
     # the paper's optimiser, except the cpu profile's 1,800 steps: Adam 2e-3, x0.75 per epoch (measured in
     # conf/profile/cpu.yaml)
     expected = {**paper_optim, "name": "adam", "lr": 0.002, "lr_decay": 0.75} if profile == "cpu" else paper_optim

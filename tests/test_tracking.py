@@ -461,3 +461,25 @@ def test_runs_of_stores_from_before_the_pyramid_folder_keep_their_hashes():
         before = tuple(k for k in exclude if k not in new_keys)  # how the code before the folder hashed
         assert config_hash(cfg, exclude) == config_hash(old, before) == config_hash(old, exclude)
     assert "cache_dir" in to_plain(cfg)["trainer"]  # the hashed copy is changed, not the config
+
+
+def test_runs_of_stores_from_before_the_schedule_settings_keep_their_hashes():
+    """``trainer.optim.schedule`` / ``warmup_steps`` came after the store of record: a config at their old values
+    (exponential, 0) hashes as the same config without them, in both hashes and in the run's identity; any other
+    value is another run (and another training)."""
+    from pcrcg.config import load_run_config
+    from pcrcg.pipeline import run_hash
+    from pcrcg.tracking.hashing import HASH_EXCLUDE, to_plain
+
+    cfg = load_run_config(["profile=cpu", "registration=inlier_ranking"])
+    assert (cfg.trainer.optim.schedule, cfg.trainer.optim.warmup_steps) == ("exponential", 0)
+    old = to_plain(cfg)
+    del old["trainer"]["optim"]["schedule"], old["trainer"]["optim"]["warmup_steps"]
+    for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
+        assert config_hash(cfg, exclude) == config_hash(old, exclude)
+        assert run_hash(cfg, exclude) == run_hash(old, exclude)
+    for change in (["trainer.optim.schedule=cosine"], ["trainer.optim.warmup_steps=10"]):
+        other = load_run_config(["profile=cpu", "registration=inlier_ranking", *change])
+        for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
+            assert run_hash(other, exclude) != run_hash(cfg, exclude)
+    assert "schedule" in to_plain(cfg)["trainer"]["optim"]  # the hashed copy is changed, not the config

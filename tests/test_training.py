@@ -91,6 +91,42 @@ def test_adam_option_and_unknown_optimiser():
         PCRCGModule(MODEL, optim={"name": "lamb"})
 
 
+def test_cosine_schedule_warms_up_then_falls_to_zero_over_the_run_steps():
+    from pcrcg.models.module import cosine_factor
+
+    assert [cosine_factor(s, 10, warmup=4) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert cosine_factor(4, 10, warmup=4) == 1.0 and cosine_factor(7, 10, warmup=4) == pytest.approx(0.5)
+    assert cosine_factor(10, 10, warmup=4) == pytest.approx(0.0, abs=1e-12) == cosine_factor(12, 10, warmup=4)
+    assert cosine_factor(0, 8) == 1.0 and cosine_factor(2, 8) == pytest.approx((1 + np.cos(np.pi / 4)) / 2)
+    with pytest.raises(ValueError, match="trainer.optim.schedule='linear'"):
+        PCRCGModule(MODEL, optim={"schedule": "linear"})
+    with pytest.raises(ValueError, match="trainer.optim.warmup_steps=-2"):
+        PCRCGModule(MODEL, optim={"schedule": "cosine", "warmup_steps": -2})
+
+
+def test_a_cosine_run_steps_its_learning_rate_every_step_as_the_formula(tmp_path, toy_root):
+    """Through Lightning (3 epochs of 2 steps): the rate of every step is lr x cosine_factor(step, 6, 2), and
+    the exponential schedule, the default, still steps once an epoch."""
+    from pcrcg.models.module import cosine_factor
+
+    seen = []
+
+    class Rates(Callback):
+        def on_train_batch_start(self, trainer, *args):
+            seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    for schedule in ("cosine", "exponential"):
+        seen.clear()
+        cfg = trainer_cfg(max_epochs=3, max_steps=None, limit_train_batches=2, limit_val_batches=0,
+                          optim=dict(name="adam", lr=0.01, schedule=schedule, warmup_steps=2, lr_decay=0.5))
+        train({"model": MODEL, "trainer": cfg, "seed": 0, "data": {"root": str(toy_root)}}, out_dir=tmp_path / schedule,
+              callbacks=[Rates()])
+        if schedule == "cosine":
+            assert seen == pytest.approx([0.01 * cosine_factor(s, 6, 2) for s in range(6)])
+        else:
+            assert seen == pytest.approx([0.01, 0.01, 0.005, 0.005, 0.0025, 0.0025])
+
+
 class CountSteps(Callback):
     """Counts training steps; raises at the end of step ``fail_at`` (or, ``before=True``, as the step after
     it starts)."""

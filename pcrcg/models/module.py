@@ -22,6 +22,7 @@ recall exceeds 0.3 (Predator's schedule); with lifted 2D features, from the firs
 from __future__ import annotations
 
 import contextlib
+import math
 
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 from torch.profiler import record_function  # stage labels (pcrcg.benchmarks.model breakdown=true)
 
-from pcrcg.config import OPTIMIZERS
+from pcrcg.config import OPTIMIZERS, SCHEDULES
 from pcrcg.errors import ConfigError
 from pcrcg.models.datamodule import PairBatch
 from pcrcg.fields import known_fields
@@ -68,7 +69,9 @@ MODELS = ("predator", "geotransformer", "cofinet")
 @dataclass
 class OptimConfig:
     """SGD + exponential decay per epoch (the paper's settings by default); ``name="adam"`` swaps
-    the optimiser for Adam (``momentum`` then unused) for short training budgets."""
+    the optimiser for Adam (``momentum`` then unused) for short training budgets. ``schedule="cosine"``
+    replaces the per-epoch decay (``lr_decay`` then unused) by a per-step cosine from ``lr`` to 0 over the
+    run's steps, after ``warmup_steps`` steps of linear warm-up (:func:`cosine_factor`)."""
 
     name: str = "sgd"
     lr: float = 0.005
@@ -76,13 +79,28 @@ class OptimConfig:
     weight_decay: float = 1e-6
     lr_decay: float = 0.95
     encoder_lr_scale: float = 1.0  # learning-rate factor of the 2D branch
+    schedule: str = "exponential"
+    warmup_steps: int = 0
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None) -> "OptimConfig":
         cfg = cls(**known_fields(cls, m))
         if cfg.name not in OPTIMIZERS:
             raise ConfigError("trainer.optim.name", cfg.name, " | ".join(OPTIMIZERS))
+        if cfg.schedule not in SCHEDULES:
+            raise ConfigError("trainer.optim.schedule", cfg.schedule, " | ".join(SCHEDULES))
+        if isinstance(cfg.warmup_steps, bool) or not isinstance(cfg.warmup_steps, int) or cfg.warmup_steps < 0:
+            raise ConfigError("trainer.optim.warmup_steps", cfg.warmup_steps, "an integer >= 0")
         return cfg
+
+
+def cosine_factor(step: int, total: int, warmup: int = 0) -> float:
+    """The learning rate's factor at optimiser step ``step`` (0-based) of ``total``: ``(step + 1) / warmup`` during
+    the warm-up, then ``(1 + cos(pi * t)) / 2`` with t going from 0 at the warm-up's end to 1 at step ``total``."""
+    if step < warmup:
+        return (step + 1) / warmup
+    t = min(1.0, (step - warmup) / max(1, total - warmup))
+    return 0.5 * (1.0 + math.cos(math.pi * t))
 
 
 @dataclass
@@ -426,5 +444,9 @@ class PCRCGModule(L.LightningModule):
             opt = torch.optim.Adam(groups, lr=c.lr, weight_decay=c.weight_decay)
         else:
             opt = torch.optim.SGD(groups, lr=c.lr, momentum=c.momentum, weight_decay=c.weight_decay)
+        if c.schedule == "cosine":
+            total = int(self.trainer.estimated_stepping_batches)
+            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: cosine_factor(step, total, c.warmup_steps))
+            return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=c.lr_decay)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch", "frequency": 1}}

@@ -34,6 +34,9 @@ HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", 
 # excluded keys that older configs had with one value for every run: hashed with that value instead of left out,
 # so that the runs of older stores keep their hashes (trainer.cache_dir was null until it was excluded)
 NEUTRAL: dict[str, Any] = {"trainer.cache_dir": None}
+# settings added after runs were recorded, with the value that computes what the code before them computed: hashed
+# only at another value (:func:`without_added`), so that the finished runs of older stores keep their hashes
+ADDED: dict[str, Any] = {"trainer.optim.schedule": "exponential", "trainer.optim.warmup_steps": 0}
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 # settings that only a color run reads (the 2D encoder, the matcher, the projection and what it lifts): a learned
@@ -70,6 +73,20 @@ def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
                 node[last] = NEUTRAL[key]
             else:
                 del node[last]
+    return out
+
+
+def without_added(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A copy of the nested plain config ``data`` without the settings of :data:`ADDED` that hold their value of
+    before (a setting at any other value stays)."""
+    out = json.loads(json.dumps(data, default=str))
+    for key, before in ADDED.items():
+        *parents, last = key.split(".")
+        node = out
+        for p in parents:
+            node = node.get(p) if isinstance(node, dict) else None
+        if isinstance(node, dict) and last in node and node[last] == before:
+            del node[last]
     return out
 
 
@@ -146,7 +163,7 @@ def with_weights_digest(data: dict[str, Any], by_bytes: bool = False) -> dict[st
 def config_hash(cfg: DictConfig | Mapping[str, Any], exclude: Iterable[str] = HASH_EXCLUDE) -> str:
     """16 hex chars of the SHA-256 of the canonical JSON of the resolved config minus ``exclude``, with its 2D
     weights' digest (:func:`with_weights_digest`)."""
-    return data_hash(with_weights_digest(without(to_plain(cfg), exclude)))
+    return data_hash(with_weights_digest(without_added(without(to_plain(cfg), exclude))))
 
 
 def data_hash(data: Mapping[str, Any]) -> str:
