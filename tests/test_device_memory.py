@@ -1,5 +1,5 @@
 """pcrcg.device.keep_freed_memory: large allocations reuse the heap instead of fresh pages (glibc), once
-per process, and not at all with PCRCG_MALLOC=default."""
+per process, and not at all with PCRCG_MALLOC=default; pcrcg.device.pin_cores: every thread on the same cores."""
 
 from __future__ import annotations
 
@@ -47,3 +47,38 @@ def test_freed_memory_is_kept_so_large_allocations_stop_faulting_pages():
     # the parallel suite: 16,384 faults, one block): a few such blocks of the 20 at most
     assert kept["faults"] < 3 * 16_384 < plain["faults"] // 4
     assert off["faults"] > 20 * 10_000
+
+
+def test_pin_cores_pins_the_threads_alive_and_those_started_later():
+    """``pin_cores(1)``: every thread of the process, one already running and one started afterwards, runs on the
+    first allowed CPU alone (the registration benchmark's Open3D threads with it); 0 pins nothing."""
+    import os
+    import threading
+
+    from pcrcg.device import pin_cores
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this platform")
+    before = os.sched_getaffinity(0)
+    go, seen = threading.Event(), {}
+
+    def report(name):
+        go.wait()
+        seen[name] = os.sched_getaffinity(0)
+
+    early = threading.Thread(target=report, args=("early",))
+    early.start()
+    try:
+        assert pin_cores(0) is None and os.sched_getaffinity(0) == before
+        kept = pin_cores(1)
+        assert kept == sorted(before)[:1]
+        late = threading.Thread(target=report, args=("late",))
+        late.start()
+        go.set()
+        early.join()
+        late.join()
+        assert os.sched_getaffinity(0) == seen["early"] == seen["late"] == set(kept)
+    finally:
+        go.set()
+        for task in os.listdir("/proc/self/task"):  # this test process gets all its CPUs back
+            os.sched_setaffinity(int(task), before)
