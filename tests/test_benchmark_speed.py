@@ -85,6 +85,21 @@ def test_summary_says_met_or_missed_by_how_much():
     assert deep.startswith("| deep | 660 | 350 ") and "<= 330 s (2x)" in deep and deep.endswith("missed by 20 s |")
 
 
+def test_the_reference_day_measured_here_replaces_the_other_machine_s_figures():
+    from pcrcg.benchmarks.speed import _reference_seconds
+    from pcrcg.errors import ConfigError
+
+    here = _reference_seconds("none=360")
+    assert here == {"none": 360.0} and _reference_seconds("") == {}
+    lines = summary({"none": {"train_s": 100.0, "evaluate_s": 60.0, "kind": "cpu"},
+                     "deep": {"train_s": 250.0, "evaluate_s": 80.0, "kind": "cpu"}}, here)
+    assert lines[2] == "| none | 360 (here) | 160 (100 + 60, cpu) | 2.25x | <= 120 s (3x) | missed by 40 s |"
+    assert lines[3].startswith("| deep | 660 | 330 ") and lines[3].endswith("| met |")  # no figure here: the day's
+    for bad in ("none", "none=0", "none=x", "sift=300"):
+        with pytest.raises(ConfigError, match="--reference"):
+            _reference_seconds(bad)
+
+
 def test_a_deep_reference_run_without_pri3d_weights_is_skipped_with_the_command(tmp_path, monkeypatch):
     monkeypatch.setattr(speed, "pri3d_weights", lambda profile: tmp_path / "none.pth")
     row, how = speed.reference_run("cpu", "deep", tmp_path)

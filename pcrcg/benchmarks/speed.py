@@ -30,7 +30,9 @@ day the speed work began (prints figures; asserts nothing).
      2-epoch reference cannot, so the scaled training is a little cheaper than ``--run``'s.
 
 4. **The summary**: the reference day's seconds, today's, the speed-up and the target (a third of the day's
-   time geometry-only, half of it with deep color), met or missed. CPU seconds are what a run costs on a
+   time geometry-only, half of it with deep color), met or missed. The reference day's seconds were measured on
+   that day's machine; ``--reference none=S`` puts in their place the reference day's code measured on this one
+   (README "Speed": 359 s on the Intel machine of 2026-12-07, where the reference day's machine took 450 s). CPU seconds are what a run costs on a
    core of its own; wall seconds on a shared machine add the time it waited for one.
 5. **RANSAC against Open3D** (``--ransac``): both on identical correspondences at confidence 0.999, per N, with
    their recalls (``python -m pcrcg.benchmarks.registration --identical-only``: ``--ransac-pairs`` pairs x
@@ -47,7 +49,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -215,20 +217,41 @@ def _print_stages(row: dict[str, Any], origin: str) -> None:
             print(f"    {kind:<4s} " + "  ".join(f"{s} {row[kind][s]:.1f} s" for s in STAGES if s in row[kind]))
 
 
-def summary(rows: dict[str, dict[str, float]]) -> list[str]:
+def summary(rows: dict[str, dict[str, float]], here: Mapping[str, float] | None = None) -> list[str]:
     """The summary lines: per color, the reference day's training + evaluation seconds, today's
-    (``rows[color]``: :func:`scaled`), the speed-up and the target."""
+    (``rows[color]``: :func:`scaled`), the speed-up and the target. ``here`` (color -> seconds): the reference
+    day's training + evaluation measured on this machine (its code run beside today's: README "Speed") in place of
+    :data:`REFERENCE`'s, which were measured on the reference day's machine; such a row says ``here``."""
+    here = dict(here or {})
     lines = ["| color | reference day s | today s (train + evaluate) | speed-up | target | |",
              "|---|---:|---:|---:|---:|---|"]
     for color, now in rows.items():
         ref = REFERENCE[color]
-        before, after = ref["train_s"] + ref["evaluate_s"], now["train_s"] + now["evaluate_s"]
+        before, after = here.get(color, ref["train_s"] + ref["evaluate_s"]), now["train_s"] + now["evaluate_s"]
         target = before * ref["target"]
         verdict = "met" if after <= target else f"missed by {after - target:.0f} s"
-        lines.append(f"| {color} | {before:.0f} | {after:.0f} ({now['train_s']:.0f} + {now['evaluate_s']:.0f}, "
+        lines.append(f"| {color} | {before:.0f}{' (here)' if color in here else ''} | {after:.0f} ({now['train_s']:.0f} + {now['evaluate_s']:.0f}, "
                      f"{now['kind']}) | {before / after:.2f}x | <= {target:.0f} s ({1 / ref['target']:.0f}x) | "
                      f"{verdict} |")
     return lines
+
+
+def _reference_seconds(text: str) -> dict[str, float]:
+    """``--reference`` ``"none=359,deep=700"`` -> {color: seconds}; a bad item is one line naming it."""
+    from pcrcg.errors import ConfigError
+
+    out: dict[str, float] = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        color, _, value = item.partition("=")
+        try:
+            seconds = float(value)
+        except ValueError:
+            seconds = float("nan")
+        if color not in COLOR_OVERRIDES or not seconds > 0:
+            raise ConfigError("--reference", item, f"COLOR=SECONDS with COLOR one of {' | '.join(COLOR_OVERRIDES)} "
+                              "and SECONDS > 0")
+        out[color] = seconds
+    return out
 
 
 def ransac_lines(rows: Sequence[dict[str, Any]], target: float = RANSAC_TARGET) -> list[str]:
@@ -262,6 +285,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     p.add_argument("--eval-pairs", type=int, default=4, help="test pairs per benchmark timed in evaluation")
     p.add_argument("--reps", type=int, default=2)
     p.add_argument("--skip", default="", help="train and/or eval")
+    p.add_argument("--reference", default="", metavar="COLOR=SECONDS[,...]",
+                   help="the reference day's training + evaluation seconds measured on this machine (its code run "
+                        "beside today's, README 'Speed'), e.g. none=359, in place of the figures of the reference "
+                        "day's machine")
     p.add_argument("--ransac", action="store_true", help="also RANSAC against Open3D on identical correspondences")
     p.add_argument("--ransac-pairs", type=int, default=32)
     p.add_argument("--ransac-seeds", type=int, default=3)
@@ -276,6 +303,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     for name in ("pairs", "eval_pairs", "reps", "ransac_pairs", "ransac_seeds"):
         if getattr(args, name) < 1:
             raise ConfigError("--" + name.replace("_", "-"), getattr(args, name), "an integer >= 1")
+    here = _reference_seconds(args.reference)
     bad = [k for k in args.skip.split(",") if k and k not in ("train", "eval")]
     if bad:
         raise ConfigError("--skip", args.skip, "train and/or eval, comma-separated")
@@ -334,7 +362,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     if out["summary"]:
         print("\n4. Summary (the reference day's figures: pcrcg.benchmarks.speed.REFERENCE; the paper's ranking)")
-        print("\n".join(summary(out["summary"])))
+        print("\n".join(summary(out["summary"], here)))
     if args.ransac:
         from pcrcg.benchmarks.registration import main as registration_main
 
