@@ -199,3 +199,12 @@ def test_evaluation_is_timed_at_one_thread_of_torch_and_of_the_native_pools(monk
     assert got["distance"] == pytest.approx(0.12) and seen
     torch_threads, pools = seen[0]
     assert torch_threads == 1 and pools and all(n == 1 for n in pools), seen
+
+
+def test_the_registration_benchmark_refuses_negative_cores_before_any_work(monkeypatch):
+    from pcrcg.benchmarks import registration
+    from pcrcg.errors import ConfigError
+
+    monkeypatch.setattr(registration, "make_pairs", lambda *a: pytest.fail("pairs built before the check"))
+    with pytest.raises(ConfigError, match="--cores=-1"):
+        registration.main(["--cores", "-1"])

@@ -291,6 +291,10 @@ def main(argv: list[str] | None = None) -> dict:
     from pcrcg.device import pin_cores
 
     args = _arguments(argv)
+    if args.cores < 0:
+        from pcrcg.errors import ConfigError
+
+        raise ConfigError("--cores", args.cores, "an integer >= 0 (0: not pinned)")
     pinned = pin_cores(args.cores)
     print(f"pinned to CPU {', '.join(map(str, pinned))} (--cores {args.cores}): both RANSACs on the same cores"
           if pinned else "not pinned to CPUs (--cores 0, or not Linux): a library's own threads may use more cores")
