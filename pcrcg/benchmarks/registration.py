@@ -286,14 +286,12 @@ def main(argv: list[str] | None = None) -> dict:
     import dataclasses
 
     from pcrcg.registration.feature_registration import RegistrationConfig
-    from pcrcg.registration.ransac import RansacConfig
-
     from pcrcg.device import pin_cores
+    from pcrcg.errors import ConfigError
+    from pcrcg.registration.ransac import RansacConfig
 
     args = _arguments(argv)
     if args.cores < 0:
-        from pcrcg.errors import ConfigError
-
         raise ConfigError("--cores", args.cores, "an integer >= 0 (0: not pinned)")
     pinned = pin_cores(args.cores)
     print(f"pinned to CPU {', '.join(map(str, pinned))} (--cores {args.cores}): both RANSACs on the same cores"

@@ -32,8 +32,9 @@ day the speed work began (prints figures; asserts nothing).
 4. **The summary**: the reference day's seconds, today's, the speed-up and the target (a third of the day's
    time geometry-only, half of it with deep color), met or missed. The reference day's seconds were measured on
    that day's machine; ``--reference none=S`` puts in their place the reference day's code measured on this one
-   (README "Speed": 359 s on the Intel machine of 2026-12-07, where the reference day's machine took 450 s). CPU seconds are what a run costs on a
-   core of its own; wall seconds on a shared machine add the time it waited for one.
+   (README "Speed": 359 s on the Intel machine of 2026-12-07, where the reference day's machine took 450 s).
+   CPU seconds are what a run costs on a core of its own; wall seconds on a shared machine add the time it
+   waited for one.
 5. **RANSAC against Open3D** (``--ransac``): both on identical correspondences at confidence 0.999, per N, with
    their recalls (``python -m pcrcg.benchmarks.registration --identical-only``: ``--ransac-pairs`` pairs x
    ``--ransac-seeds`` seeds), and whether ours is at least :data:`RANSAC_TARGET` times as fast.
@@ -230,7 +231,8 @@ def summary(rows: dict[str, dict[str, float]], here: Mapping[str, float] | None 
         before, after = here.get(color, ref["train_s"] + ref["evaluate_s"]), now["train_s"] + now["evaluate_s"]
         target = before * ref["target"]
         verdict = "met" if after <= target else f"missed by {after - target:.0f} s"
-        lines.append(f"| {color} | {before:.0f}{' (here)' if color in here else ''} | {after:.0f} ({now['train_s']:.0f} + {now['evaluate_s']:.0f}, "
+        where = " (here)" if color in here else ""
+        lines.append(f"| {color} | {before:.0f}{where} | {after:.0f} ({now['train_s']:.0f} + {now['evaluate_s']:.0f}, "
                      f"{now['kind']}) | {before / after:.2f}x | <= {target:.0f} s ({1 / ref['target']:.0f}x) | "
                      f"{verdict} |")
     return lines

@@ -57,17 +57,22 @@ def to_plain(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     return data
 
 
+def _holder(data: Mapping[str, Any], key: str) -> tuple[Mapping[str, Any] | None, str]:
+    """The mapping of nested ``data`` that holds the dotted ``key`` (``a.b.c``: ``data["a"]["b"]``, None where a
+    level is missing) and the key's last part."""
+    *parents, last = key.split(".")
+    node: Any = data
+    for p in parents:
+        node = node.get(p) if isinstance(node, Mapping) else None
+    return (node if isinstance(node, Mapping) else None), last
+
+
 def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
     """A copy of the nested plain config ``data`` without the dotted keys (``a.b``) of ``exclude`` (those of
     :data:`NEUTRAL` that it has are set to their neutral value instead)."""
     out = json.loads(json.dumps(data, default=str))
     for key in exclude:
-        *parents, last = key.split(".")
-        node = out
-        for p in parents:
-            node = node.get(p) if isinstance(node, dict) else None
-            if node is None:
-                break
+        node, last = _holder(out, key)
         if isinstance(node, dict) and last in node:
             if key in NEUTRAL:
                 node[last] = NEUTRAL[key]
@@ -79,15 +84,12 @@ def without(data: Mapping[str, Any], exclude: Iterable[str]) -> dict[str, Any]:
 def without_added(data: Mapping[str, Any]) -> dict[str, Any]:
     """A copy of the nested plain config ``data`` without the settings of :data:`ADDED` that hold their value of
     before (a setting at any other value stays)."""
-    out = json.loads(json.dumps(data, default=str))
+    at_before = []
     for key, before in ADDED.items():
-        *parents, last = key.split(".")
-        node = out
-        for p in parents:
-            node = node.get(p) if isinstance(node, dict) else None
-        if isinstance(node, dict) and last in node and node[last] == before:
-            del node[last]
-    return out
+        node, last = _holder(data, key)
+        if node is not None and last in node and node[last] == before:
+            at_before.append(key)
+    return without(data, at_before)
 
 
 _DIGESTS: dict[tuple[str, int, int], str] = {}
