@@ -553,6 +553,8 @@ GROUP_RULES: dict[str, Any] = {
     "projection.views": lambda k, v: _one_of(k, v, VIEWS),
     "projection.window_size": lambda k, v: check_top_level("window_size", v),
     "projection.depth_tolerance": _positive,
+    "projection.combine": lambda k, v: _one_of(k, v, ("overwrite", "mean")),  # lifting.config.COMBINE
+    "projection.window_style": lambda k, v: _one_of(k, v, ("centred", "official")),  # lifting.config.WINDOW_STYLES
     "matcher2d.method": lambda k, v: _one_of(k, v, MATCHER_METHODS),
     "matcher2d.pairs": lambda k, v: _one_of(k, v, PAIR_MODES),
     "matcher2d.ratio": _fraction,
@@ -628,6 +630,10 @@ def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
     proj = _group_name(data, "projection")
     if top.method == "learned" and feats not in (None, "none") and proj in ("none",):
         raise ConfigError("projection", proj, f"implicit or explicit when features={feats}")
+    pnode = data.get("projection") if isinstance(data.get("projection"), Mapping) else {}
+    if proj == "explicit" and pnode.get("window_style") == "official" and int(pnode.get("window_size") or 0) < 3:
+        raise ConfigError("window_size", pnode.get("window_size"), "3 or more with projection.window_style=official "
+                          "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
 
 
 def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:

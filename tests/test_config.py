@@ -85,6 +85,11 @@ def test_defaults_compose_and_validate(conf):
         (["trainer.optim.lr=0"], "trainer.optim.lr", "> 0"),
         (["trainer.optim.schedule=linear"], "trainer.optim.schedule", "exponential, cosine"),
         (["trainer.optim.warmup_steps=-1"], "trainer.optim.warmup_steps", ">= 0"),
+        (["features=deep", "projection=explicit", "projection.window_style=square"], "projection.window_style",
+         "centred, official"),
+        (["features=deep", "projection=explicit", "projection.combine=max"], "projection.combine", "overwrite, mean"),
+        (["features=deep", "projection=explicit", "projection.window_style=official", "window_size=1"], "window_size",
+         "3 or more"),
         (["data.version=1"], "data.version", "the data code in this checkout"),
         # rules across groups
         (["features=deep", "projection=none"], "projection", "implicit or explicit"),

@@ -136,6 +136,48 @@ def test_window_map_overlap_takes_highest_confidence():
     assert m[3, 7] == 0 and m.sum() == pytest.approx(0.2 * 6 + 0.9 * 9)  # 3x3 windows at u=3 and u=5 share column 4
 
 
+def test_official_windows_are_the_official_codes_slices():
+    """``window_style=official``: ``map[int(x - w):int(x + w), int(y - w):int(y + w)] = confidence`` on the official
+    code's (W, H) array, match by match, with w = (window_size - 1) // 2, transposed to the (H, W) grid."""
+    uv = np.array([[50.3, 40.7], [53.0, 44.0], [2.0, 60.0], [158.6, 3.2]])
+    conf = np.array([0.9, 0.2, 0.7, 0.4], np.float32)
+    m = window_weight_map(uv, conf, (120, 160), 11, style="official").numpy()
+    ref = np.zeros((160, 120), np.float32)  # written here as the official loop does, with Python's slices
+    for (x, y), c in zip(uv, conf):
+        ref[int(x - 5):int(x + 5), int(y - 5):int(y + 5)] = c
+    assert np.array_equal(m, ref.T)
+    # 10 x 10 pixels from int(x - 5): columns 45..54, rows 35..44; the later, weaker match overwrites the overlap
+    assert m[35, 45] == pytest.approx(0.9) and m[44, 47] == pytest.approx(0.9) and m[45, 46] == 0 and m[35, 55] == 0
+    assert m[39, 48] == pytest.approx(0.2) and m[39, 57] == pytest.approx(0.2)
+    # a start below 0 wraps (columns [-3:7] of 160) to an empty slice: the match at u = 2 colors nothing, nor
+    # does the one at v = 3.2 (rows [-1:8])
+    assert not m[:, :10].any() and not m[:, 150:].any()
+    assert np.count_nonzero(m) == 100 + 100 - 6 * 7  # the two windows share rows 39..44 x columns 48..54
+    centred = window_weight_map(uv, conf, (120, 160), 11).numpy()
+    assert centred[40, 50] == pytest.approx(0.9) and centred[36:47, 45:56].min() > 0  # 11 x 11 around (50, 41)
+    assert centred[60, 2] == pytest.approx(0.7)  # the border match keeps its clipped window
+
+
+def test_window_style_setting():
+    assert LiftingConfig("explicit", "sift", 1, 11, feature_dim=3).window_style == "centred"
+    with pytest.raises(ConfigError, match="projection.window_style"):
+        LiftingConfig("explicit", "sift", 1, 11, feature_dim=3, window_style="square")
+    with pytest.raises(ConfigError, match="projection.window_size.*official"):
+        LiftingConfig("explicit", "sift", 1, 1, feature_dim=3, window_style="official")
+    with pytest.raises(ValueError, match="window style"):
+        window_weight_map(np.zeros((1, 2)), np.ones(1), (4, 4), 3, style="square")
+    # a lifter reads it: the official 3 is a 2 x 2 window from int(u - 1) (pixels 6..7 x 4..5 around (7.2, 5.4))
+    view = plane_view(POSE)
+    fmap = torch.randn(3, H, W)
+    kp = ViewKeypoints(np.array([[7.2, 5.4]]), np.array([0.5]))
+    pix = [(6, 4), (7, 5), (8, 5), (7, 6)]
+    pts = torch.tensor(np.stack([pixel_point(view, u, v, 2.0) for u, v in pix]), dtype=torch.float32)
+    L = ColorLifter(LiftingConfig("explicit", "sift", 1, 3, feature_dim=3, window_style="official"))
+    assert L(pts, [view], [kp], feature_maps=[fmap])[1].tolist() == [True, True, False, False]
+    L = ColorLifter(LiftingConfig("explicit", "sift", 1, 3, feature_dim=3))
+    assert L(pts, [view], [kp], feature_maps=[fmap])[1].tolist() == [True, True, True, True]
+
+
 def test_projection_grid_resampling():
     """A coarser grid (image_size) scales intrinsics, depth and features consistently."""
     view = plane_view(POSE)

@@ -584,6 +584,14 @@ def test_the_report_names_per_table_the_settings_that_differ_from_the_paper_and_
            "2D BatchNorm normalising each image by its own statistics)" in text
     per_image = runs.assign(**{"params.encoder2d.bn_stats": "per_image"})
     assert "BatchNorm" not in " | ".join(fidelity_lines(per_image))
+    # explicit windows: runs logged before projection.window_style drew them centred (the paper's text), not as
+    # the official code's slices; an official-style run is as the code, not as the text
+    assert "explicit windows of window_size x window_size pixels centred on the matches (the official code: " \
+           "explicit windows as the official code's slices (2 * ((window_size - 1) // 2) pixels wide, later matches " \
+           "overwriting, none past the top or left border), as the paper's text)" in text
+    official = runs.assign(**{"params.projection.window_style": "official"})
+    assert "none past the top or left border) (as the official code, the paper's text: explicit windows of " \
+           "window_size x window_size pixels centred on the matches)" in " | ".join(fidelity_lines(official))
     # ... and the table says them under its cells
     spec = _report_specs()["backbone_2d"]
     table = fill_table(spec, runs, load_paper(), {"backbone_2d": "cpu"})

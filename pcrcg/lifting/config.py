@@ -9,6 +9,7 @@ from pcrcg.errors import ConfigError
 
 PROJECTIONS = ("none", "implicit", "explicit")
 COMBINE = ("overwrite", "mean")
+WINDOW_STYLES = ("centred", "official")
 FEATURES = ("none", "rgb", "sift", "deep", "disk")
 _DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32, "disk": 32}
 
@@ -24,6 +25,12 @@ class LiftingConfig:
       32 for sift/deep/disk, 0 for none; rgb must be 3, sift and disk at most 128).
     * ``views``: 1..3, the first ``views`` of (first, last, middle) frame of each fragment.
     * ``window_size``: odd >= 1, pixels of the projection grid (explicit only).
+    * ``window_style``: how a match's window is drawn (explicit only): ``centred`` (the paper's text: the
+      ``window_size`` x ``window_size`` pixels centred on the rounded match pixel, the highest confidence
+      where windows overlap) | ``official`` (the official code's slices ``[int(x - w), int(x + w))`` on both
+      axes with ``w = (window_size - 1) // 2``, so 10 x 10 pixels for 11: its configs' ``window_size: 5``;
+      in the matcher's order, a later match overwriting an earlier one; a window whose start falls below 0
+      wraps to an empty slice, as NumPy's negative indices do there, and colors nothing).
     * ``depth_tolerance``: metres; a point takes a pixel only if ``|z_point - depth| < tolerance``.
     * ``image_size``: (H, W) of the projection grid (depth, feature maps, windows are resampled to
       it); ``None`` = each view's own resolution.
@@ -48,6 +55,7 @@ class LiftingConfig:
     # first reading; conf/projection/*.yaml set the official code's (1.0, overwrite)
     unseen_value: float = 0.0
     combine: str = "mean"
+    window_style: str = "centred"
 
     def __post_init__(self) -> None:
         if self.projection not in PROJECTIONS:
@@ -59,6 +67,11 @@ class LiftingConfig:
         ws = self.window_size
         if isinstance(ws, bool) or not isinstance(ws, int) or ws < 1 or ws % 2 == 0:
             raise ConfigError("projection.window_size", ws, "an odd integer >= 1 (pixels)")
+        if self.window_style not in WINDOW_STYLES:
+            raise ConfigError("projection.window_style", self.window_style, " | ".join(WINDOW_STYLES))
+        if self.window_style == "official" and ws < 3:
+            raise ConfigError("projection.window_size", ws, "3 or more with projection.window_style=official "
+                              "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
         try:
             tol = float(self.depth_tolerance)
         except (TypeError, ValueError):
@@ -120,6 +133,7 @@ class LiftingConfig:
             image_size=None if size is None else tuple(size),
             unseen_value=proj.get("unseen_value", 0.0),
             combine=str(proj.get("combine", "mean")),
+            window_style=str(proj.get("window_style", "centred")),
         )
 
 

@@ -4,7 +4,8 @@
 prints one row per setting and whether coverage grows as the paper says (views 1 < 2 <= 3,
 windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrcg.testing.scenes`).
 Other keys: ``views=[1,2,3] windows=[3,7,11,17] base_views=2 base_window=11
-depth_tolerance=0.1 image_size=null method=sift|orb|lightglue pairs=paper|all|covisible cache_dir=cache/matches``.
+depth_tolerance=0.1 image_size=null window_style=centred|official method=sift|orb|lightglue pairs=paper|all|covisible
+cache_dir=cache/matches``.
 Coverage depends only on geometry and matches, so no feature map is computed.
 
 Where the pairs carry their ground-truth pose (a benchmark's or a split's pairs: ``split=3DLoMatch``), each row
@@ -81,6 +82,7 @@ def coverage_sweep(
     cache: MatchCache | None = None,
     progress: bool = False,
     overlap_radius: float = 0.0375,
+    window_style: str = "centred",
 ) -> list[CoverageRow]:
     """Mean ``color_coverage`` over ``samples`` (PairSample with >= max(views) views each) for
 
@@ -90,7 +92,7 @@ def coverage_sweep(
     The 2D matches of each pair are computed once (all views, ``matcher.pairs``) and reused; with
     ``pairs=covisible`` (which ranks the view pairs of the views in use) once per number of views.
     Samples with a ``transform`` also give :func:`coloring_of` their overlap (:func:`overlap_pairs`, ``overlap_radius`` m,
-    found once per pair).
+    found once per pair). ``window_style``: how the explicit windows are drawn (:class:`LiftingConfig`).
     """
     from tqdm import tqdm
 
@@ -102,7 +104,8 @@ def coverage_sweep(
             settings.append(("views", proj, int(v), int(base_window)))
     for w in windows:
         settings.append(("window", "explicit", int(base_views), int(w)))
-    lifters = {s: ColorLifter(LiftingConfig(s[1], "none", s[2], s[3], depth_tolerance, image_size=size)) for s in settings}
+    lifters = {s: ColorLifter(LiftingConfig(s[1], "none", s[2], s[3], depth_tolerance, image_size=size,
+                                            window_style=window_style)) for s in settings}
     sums = {s: 0.0 for s in settings}
     overlap: dict[tuple[str, str, int, int], list[tuple[float, float]]] = {s: [] for s in settings}
     n = 0
@@ -190,6 +193,7 @@ def main(argv: Sequence[str] | None = None) -> list[CoverageRow]:
         cache=MatchCache(cache_dir) if cache_dir else None,
         progress=True,
         overlap_radius=float(args.get("overlap_radius", 0.0375)),
+        window_style=str(args.get("window_style", "centred")),
     )
     print(f"data: {root or 'toy scene (pcrcg.testing.scenes)'}")
     print(format_rows(rows))

@@ -8,7 +8,8 @@ For each selected view (first, last, middle frame of the fragment):
    value there and ``|z - depth| < depth_tolerance`` (occluded points and holes get nothing);
 3. ``implicit``: weight 1 for every seen pixel; ``explicit``: weight = the match confidence of the
    ``window_size`` x ``window_size`` window centred on a 2D match that holds the pixel (the highest
-   when windows overlap), 0 outside every window;
+   when windows overlap; ``window_style=official``: the official code's slices, below), 0 outside every
+   window;
 4. the point's feature from that view is ``weight * feature_map[:, pixel]`` (a differentiable gather:
    gradients flow into the feature map, hence into the 2D encoder);
 5. several views (``combine``): ``overwrite`` (the official code) takes the value of the first-listed
@@ -107,14 +108,25 @@ def project_points(points: torch.Tensor, view: Any, size: tuple[int, int], depth
 
 
 def window_weight_map(uv: np.ndarray | torch.Tensor, confidence: np.ndarray | torch.Tensor, size: tuple[int, int],
-                      window_size: int, device: torch.device | str | None = None) -> torch.Tensor:
-    """(H, W) float32: for each pixel, the highest confidence of the ``window_size`` x ``window_size``
-    windows centred on the (rounded) match pixels ``uv`` (K, 2) that contain it; 0 elsewhere.
-    ``uv`` must already be in grid coordinates."""
+                      window_size: int, device: torch.device | str | None = None, style: str = "centred") -> torch.Tensor:
+    """(H, W) float32 weights of the windows around the match pixels ``uv`` (K, 2) (grid coordinates, u then v)
+    with their ``confidence`` (K,); 0 outside every window.
+
+    ``style="centred"``: each pixel takes the highest confidence of the ``window_size`` x ``window_size``
+    windows centred on the rounded match pixels that contain it. ``style="official"``: the official code's
+    windows, rows ``[int(v - w), int(v + w))`` and columns ``[int(u - w), int(u + w))`` with
+    ``w = (window_size - 1) // 2`` as NumPy slices (a start below 0 wraps, and such a window is empty or
+    clipped as NumPy makes it), written in the matches' order, a later one overwriting an earlier one."""
     H, W = size
-    uv_t = torch.as_tensor(np.asarray(uv, dtype=np.float32) if not torch.is_tensor(uv) else uv, device=device).float()
-    c = torch.as_tensor(np.asarray(confidence, dtype=np.float32) if not torch.is_tensor(confidence) else confidence,
-                        device=device).float()
+    uv_np = uv.detach().cpu().numpy() if torch.is_tensor(uv) else np.asarray(uv)
+    c_np = confidence.detach().cpu().numpy() if torch.is_tensor(confidence) else np.asarray(confidence)
+    if style == "official":
+        return _official_windows(uv_np.astype(np.float64).reshape(-1, 2), c_np.astype(np.float32).reshape(-1),
+                                 size, window_size).to(device)
+    if style != "centred":
+        raise ValueError(f"window style {style!r}: centred | official")
+    uv_t = torch.as_tensor(uv_np, dtype=torch.float32, device=device)
+    c = torch.as_tensor(c_np, dtype=torch.float32, device=device)
     grid = torch.zeros(H * W, dtype=torch.float32, device=device)
     if len(c):
         u = torch.round(uv_t[:, 0]).long()
@@ -125,6 +137,17 @@ def window_weight_map(uv: np.ndarray | torch.Tensor, confidence: np.ndarray | to
     if window_size > 1:
         grid = F.max_pool2d(grid, kernel_size=window_size, stride=1, padding=window_size // 2)
     return grid[0, 0]
+
+
+def _official_windows(uv: np.ndarray, confidence: np.ndarray, size: tuple[int, int], window_size: int) -> torch.Tensor:
+    """The official code's weight map (``datasets/indoor.py``: ``map[int(x - w):int(x + w), int(y - w):int(y + w)]
+    = confidence`` over a (W, H) array, match by match), here on the (H, W) grid: uv (K, 2) float64 -> (H, W)."""
+    H, W = size
+    w = (window_size - 1) // 2
+    out = np.zeros((H, W), dtype=np.float32)
+    for (u, v), c in zip(uv.tolist(), confidence.tolist()):
+        out[int(v - w):int(v + w), int(u - w):int(u + w)] = c
+    return torch.from_numpy(out)
 
 
 def keypoints_to_grid(kp: ViewKeypoints, view: Any, size: tuple[int, int]) -> np.ndarray:
@@ -216,7 +239,8 @@ class ColorLifter(nn.Module):
             return torch.zeros(size, dtype=torch.float32, device=device)
         if isinstance(spec, ViewKeypoints) or (hasattr(spec, "uv") and hasattr(spec, "confidence")):
             kp = spec if isinstance(spec, ViewKeypoints) else ViewKeypoints(spec.uv, spec.confidence)
-            return window_weight_map(keypoints_to_grid(kp, view, size), kp.confidence, size, self.cfg.window_size, device)
+            return window_weight_map(keypoints_to_grid(kp, view, size), kp.confidence, size, self.cfg.window_size, device,
+                                     self.cfg.window_style)
         wmap = torch.as_tensor(np.asarray(spec) if not torch.is_tensor(spec) else spec, device=device).float()
         if tuple(wmap.shape) != tuple(size):
             raise ValueError(f"weight map of shape {tuple(wmap.shape)} does not match the projection grid {size}")

@@ -88,6 +88,11 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("projection.unseen_value", "feature of points no view sees", None, "1.0",
             {"1.0": "points no view sees get the constant 1", "0.0": "points no view sees get zeros"},
             lambda r: _color(r) and _learned(r)),
+    Setting("projection.window_style", "explicit windows", "centred", "official",
+            {"centred": "explicit windows of window_size x window_size pixels centred on the matches",
+             "official": "explicit windows as the official code's slices (2 * ((window_size - 1) // 2) pixels wide, "
+                         "later matches overwriting, none past the top or left border)"},
+            lambda r: _color(r) and _learned(r) and _param(r, "projection.name") == "explicit", before="centred"),
     Setting("encoder2d.arch", "2D encoder", "resnet50", "resnet50", {}, lambda r: _deep(r) and _learned(r)),
     Setting("encoder2d.out_dim", "2D feature width", "128", "128", {}, lambda r: _deep(r) and _learned(r)),
     Setting("encoder2d.bn_stats", "2D BatchNorm statistics", None, "per_image",

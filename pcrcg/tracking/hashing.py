@@ -36,7 +36,8 @@ HASH_EXCLUDE: tuple[str, ...] = ("hydra", "logger", "experiment_name", "paths", 
 NEUTRAL: dict[str, Any] = {"trainer.cache_dir": None}
 # settings added after runs were recorded, with the value that computes what the code before them computed: hashed
 # only at another value (:func:`without_added`), so that the finished runs of older stores keep their hashes
-ADDED: dict[str, Any] = {"trainer.optim.schedule": "exponential", "trainer.optim.warmup_steps": 0}
+ADDED: dict[str, Any] = {"trainer.optim.schedule": "exponential", "trainer.optim.warmup_steps": 0,
+                         "projection.window_style": "centred"}
 # ... and, in addition, keys that do not change what *training* computes (checkpoint cache key)
 TRAIN_HASH_EXCLUDE: tuple[str, ...] = HASH_EXCLUDE + ("method", "icp_init", "eval", "registration", "stages.evaluate")
 # settings that only a color run reads (the 2D encoder, the matcher, the projection and what it lifts): a learned
