@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 
 import pytest
@@ -182,7 +184,13 @@ def test_every_entry_point_keeps_the_start_folder_and_writes_under_outputs(conf,
         hydra_cfg = compose(config_name=name, return_hydra_config=True).hydra
     assert hydra_cfg.job.chdir is False
     folder = OmegaConf.to_container(hydra_cfg.run)["dir"].replace("${hydra.job.config_name}", hydra_cfg.job.config_name)
-    assert folder.startswith(f"outputs/{name}/") and folder.endswith("/${now:%Y-%m-%d_%H-%M-%S}")
+    assert folder.startswith(f"outputs/{name}/") and folder.endswith("/${now:%Y-%m-%d_%H-%M-%S}_${pcrcg.pid:}")
+    # resolved: the start time and this process's id, so that commands started in the same second do not share it
+    resolved = OmegaConf.to_container(hydra_cfg.run, resolve=True)["dir"]
+    assert re.fullmatch(rf"outputs/{name}/(\S+/)?\d{{4}}-\d\d-\d\d_\d\d-\d\d-\d\d_{os.getpid()}", resolved), resolved
+    if name == "run":  # a sweep's folder too (its jobs are subfolders 0, 1, ...)
+        sweep = OmegaConf.to_container(OmegaConf.create({"dir": hydra_cfg.sweep.dir}), resolve=True)["dir"]
+        assert re.fullmatch(rf"multirun/\S+/[\d_-]+_{os.getpid()}", sweep), sweep
 
 
 def test_group_options_lists_option_files(conf):
