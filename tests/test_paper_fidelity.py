@@ -256,6 +256,20 @@ def _views():
 # --------------------------------------------------------------------------- item 1: 2D branch detached by default
 
 
+def test_explicit_windows_are_the_official_codes_by_default():
+    """The explicit projection draws its windows as the official code (``datasets/indoor.py``'s slices); the paper's
+    centred N x N windows are a setting, and a config without the key (an older run's) reads as centred."""
+    from pcrcg.lifting import LiftingConfig
+
+    cfg = load_run_config(["profile=tiny", "features=deep", "projection=explicit", "encoder2d=scratch"])
+    assert LiftingConfig.from_cfg(cfg).window_style == "official"
+    cfg = load_run_config(["profile=tiny", "features=deep", "projection=explicit", "encoder2d=scratch",
+                           "projection.window_style=centred"])
+    assert LiftingConfig.from_cfg(cfg).window_style == "centred"
+    assert LiftingConfig.from_cfg({"projection": {"name": "explicit"}, "features": {"name": "deep"}}).window_style \
+        == "centred"
+
+
 def test_the_2d_branch_is_detached_by_default_and_end_to_end_is_a_setting():
     from test_training import MODEL, _color_batch, _lifting
 

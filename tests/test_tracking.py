@@ -486,19 +486,20 @@ def test_runs_of_stores_from_before_the_schedule_settings_keep_their_hashes():
 
 
 def test_runs_of_stores_from_before_the_window_style_keep_their_hashes():
-    """``projection.window_style`` came after the store of record: an explicit run's config at ``centred`` hashes as
-    the same config without the key; ``official`` is another run (and another training)."""
+    """``projection.window_style`` came after the store of record, whose explicit runs drew centred windows: a config at
+    ``centred`` hashes as the same config without the key; ``official`` (the default since) is another run (and
+    another training)."""
     from pcrcg.config import load_run_config
     from pcrcg.pipeline import run_hash
     from pcrcg.tracking.hashing import HASH_EXCLUDE, to_plain
 
     base = ["profile=cpu", "features=deep", "projection=explicit", "encoder2d=scratch"]
-    cfg = load_run_config(base)
-    assert cfg.projection.window_style == "centred"
+    cfg = load_run_config([*base, "projection.window_style=centred"])
     old = to_plain(cfg)
     del old["projection"]["window_style"]
-    other = load_run_config([*base, "projection.window_style=official"])
+    default = load_run_config(base)
+    assert default.projection.window_style == "official"
     for exclude in (HASH_EXCLUDE, TRAIN_HASH_EXCLUDE):
         assert config_hash(cfg, exclude) == config_hash(old, exclude)
         assert run_hash(cfg, exclude) == run_hash(old, exclude)
-        assert run_hash(other, exclude) != run_hash(cfg, exclude)
+        assert run_hash(default, exclude) != run_hash(cfg, exclude)
