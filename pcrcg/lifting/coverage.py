@@ -5,7 +5,7 @@ prints one row per setting and whether coverage grows as the paper says (views 1
 windows 3 < 7 < 11 < 17). Without ``data.root`` it runs on toy pairs (:mod:`pcrcg.testing.scenes`).
 Other keys: ``views=[1,2,3] windows=[3,7,11,17] base_views=2 base_window=11
 depth_tolerance=0.1 image_size=null window_style=centred|official method=sift|orb|lightglue pairs=paper|all|covisible
-cache_dir=cache/matches``.
+cache_dir=cache/matches`` (``window_style`` centred by default here, as the README's figures; a run's default is official).
 Coverage depends only on geometry and matches, so no feature map is computed.
 
 Where the pairs carry their ground-truth pose (a benchmark's or a split's pairs: ``split=3DLoMatch``), each row
