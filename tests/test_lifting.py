@@ -164,6 +164,8 @@ def test_window_style_setting():
         LiftingConfig("explicit", "sift", 1, 11, feature_dim=3, window_style="square")
     with pytest.raises(ConfigError, match="projection.window_size.*official"):
         LiftingConfig("explicit", "sift", 1, 1, feature_dim=3, window_style="official")
+    # the implicit projection draws no windows: any size goes with either style (the official style is the default)
+    assert LiftingConfig("implicit", "sift", 1, 1, feature_dim=3, window_style="official").window_size == 1
     with pytest.raises(ValueError, match="window style"):
         window_weight_map(np.zeros((1, 2)), np.ones(1), (4, 4), 3, style="square")
     # a lifter reads it: the official 3 is a 2 x 2 window from int(u - 1) (pixels 6..7 x 4..5 around (7.2, 5.4))

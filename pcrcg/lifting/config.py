@@ -69,7 +69,7 @@ class LiftingConfig:
             raise ConfigError("projection.window_size", ws, "an odd integer >= 1 (pixels)")
         if self.window_style not in WINDOW_STYLES:
             raise ConfigError("projection.window_style", self.window_style, " | ".join(WINDOW_STYLES))
-        if self.window_style == "official" and ws < 3:
+        if self.projection == "explicit" and self.window_style == "official" and ws < 3:
             raise ConfigError("projection.window_size", ws, "3 or more with projection.window_style=official "
                               "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
         try:
