@@ -42,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pcrcg.config import (CONF_DIR, color_enabled, geometry_only, needs_training, preflight, seed_independent,
                           validate_run_config)
+from pcrcg.data.layout import atomic_write_text
 from pcrcg.device import cpu_threads, keep_freed_memory, resolve_device
 from pcrcg.errors import ConfigError, PcrcgError, one_line
 from pcrcg.tracking.git import DEFAULT_IDENTITY, code_version, same_code
@@ -574,6 +575,8 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, clock: Clock):
     metrics = {k: float(v) for k, v in result.metrics.items() if v is not None}
     _write_outputs(ctx, metrics, result, h)
     timings.update(clock.metrics("total"))
+    # the stage times beside the metrics, also for a run without a store (logger=none)
+    atomic_write_text(ctx.out_dir / "timings.json", json.dumps(timings, indent=1))
     if tracker is not None and run_id is not None:
         tracker.log_metrics(run_id, {**metrics, **timings})
         tracker.log_params(run_id, flatten(result.protocol, "protocol."))

@@ -173,6 +173,82 @@ def test_clouds_ply_npz_pth(tmp_path):
     np.testing.assert_array_equal(read_cloud(tmp_path / "tensor.pth")[0], pts)
 
 
+def _ply(path, fmt, props, rows, extra_header=()):
+    """A PLY file of the given format (ascii / binary_little_endian / binary_big_endian), vertex properties
+    [(type, name)], rows (N, len(props)), and header lines before the vertex element."""
+    kinds = {"float": "f4", "double": "f8", "uchar": "u1", "int": "i4", "ushort": "u2"}
+    head = ["ply", f"format {fmt} 1.0", "comment made by the test", *extra_header, f"element vertex {len(rows)}"]
+    head += [f"property {t} {n}" for t, n in props] + ["end_header"]
+    with open(path, "wb") as f:
+        f.write(("\n".join(head) + "\n").encode())
+        if fmt == "ascii":
+            f.write("".join(" ".join(repr(float(v)) if t in ("float", "double") else str(int(v))
+                                     for (t, _), v in zip(props, r)) + "\n" for r in rows).encode())
+        else:
+            order = "<" if fmt == "binary_little_endian" else ">"
+            rec = np.zeros(len(rows), dtype=[(n, order + kinds[t]) for t, n in props])
+            for k, (_, n) in enumerate(props):
+                rec[n] = [r[k] for r in rows]
+            f.write(rec.tobytes())
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_ply_read_by_numpy_as_open3d_reads_it(tmp_path, fmt):
+    """read_ply (NumPy; what a run reads fragments with, so that a machine without Open3D runs) gives Open3D's
+    values to the bit: points as doubles, uchar colors / 255, in every format and with other properties."""
+    o3d = pytest.importorskip("open3d")
+    from pcrcg.data.layout import read_ply
+
+    rng = np.random.default_rng(3)
+    n = 300
+    xyz = rng.normal(size=(n, 3)).astype(np.float32)
+    rgb = np.concatenate([np.arange(256), rng.integers(0, 256, n - 256)])[:, None].repeat(3, 1)
+    rgb[:, 1] = rgb[::-1, 0]
+    props = [("float", "x"), ("float", "y"), ("float", "z"), ("float", "nx"), ("uchar", "red"), ("uchar", "green"),
+             ("uchar", "blue"), ("int", "label")]
+    rows = [(*xyz[i], 0.5, *rgb[i], i) for i in range(n)]
+    _ply(tmp_path / "c.ply", fmt, props, rows)
+    pts, cols = read_ply(tmp_path / "c.ply")
+    ref = o3d.io.read_point_cloud(str(tmp_path / "c.ply"))
+    assert np.array_equal(pts, np.asarray(ref.points)) and np.array_equal(cols, np.asarray(ref.colors))
+    assert pts.dtype == np.float64 and cols.min() == 0.0 and cols.max() == 1.0
+    # doubles, no colors; and what read_cloud gives (float32, as from Open3D's doubles)
+    _ply(tmp_path / "d.ply", fmt, [("double", "x"), ("double", "y"), ("double", "z")], xyz.astype(np.float64) / 3)
+    pts, cols = read_ply(tmp_path / "d.ply")
+    ref = o3d.io.read_point_cloud(str(tmp_path / "d.ply"))
+    assert cols is None and np.array_equal(pts, np.asarray(ref.points))
+    p32, c32 = read_cloud(tmp_path / "d.ply")
+    assert c32 is None and np.array_equal(p32, np.asarray(ref.points, dtype=np.float32))
+
+
+def test_ply_reader_errors_and_what_it_leaves_to_open3d(tmp_path):
+    from pcrcg.data.layout import read_ply
+
+    props = [("float", "x"), ("float", "y"), ("float", "z")]
+    _ply(tmp_path / "t.ply", "binary_little_endian", props, [(0, 0, 0)] * 10)
+    data = (tmp_path / "t.ply").read_bytes()
+    (tmp_path / "t.ply").write_bytes(data[:-7])  # the last vertex cut short
+    with pytest.raises(DataError, match=r"t\.ply: PLY is truncated: 10 vertices declared, 9 present"):
+        read_ply(tmp_path / "t.ply")
+    (tmp_path / "n.ply").write_bytes(b"solid mesh\n")
+    with pytest.raises(DataError, match=r"n\.ply: is not a PLY file"):
+        read_cloud(tmp_path / "n.ply")
+    _ply(tmp_path / "f.ply", "binary_little_endian", props, [(0, 0, 0)] * 3)
+    text = (tmp_path / "f.ply").read_bytes()
+    (tmp_path / "f.ply").write_bytes(text.replace(b"binary_little_endian", b"binary_middle"))
+    with pytest.raises(DataError, match="PLY format 'binary_middle'"):
+        read_ply(tmp_path / "f.ply")
+    _ply(tmp_path / "q.ply", "ascii", [("float", "a"), ("float", "b"), ("float", "c")], [(0, 0, 0)])
+    with pytest.raises(DataError, match="no x, y, z"):
+        read_ply(tmp_path / "q.ply")
+    # another element first, or colors as ushort: Open3D's to read (read_ply says so with None)
+    _ply(tmp_path / "m.ply", "ascii", props, [(1, 2, 3)], extra_header=["element face 0", "property list uchar int v"])
+    assert read_ply(tmp_path / "m.ply") is None
+    _ply(tmp_path / "u.ply", "ascii", [*props, ("ushort", "red"), ("ushort", "green"), ("ushort", "blue")],
+         [(1, 2, 3, 9, 9, 9)])
+    assert read_ply(tmp_path / "u.ply") is None
+
+
 class _Evil:
     def __reduce__(self):
         return (open, ("/tmp/pcrcg-pwned", "w"))

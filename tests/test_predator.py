@@ -323,33 +323,22 @@ def test_bad_loss_settings_name_the_setting(key, value):
 @pytest.mark.slow
 def test_paper_sized_networks_train_and_evaluate_on_the_cpu(tiny_root, tmp_path):
     """The paper profile's networks (Predator's published sizes, the Res50 UNet with 128 channels at half
-    resolution) through the real stages of a run: two training steps of PCR-CG (deep, implicit) and an
-    evaluation, on the tiny data (``profile=paper`` itself has never run: no GPU has been lent; ~45 s here)."""
+    resolution) through the real stages of a run, as a lent GPU's check runs them (``pcrcg.benchmarks.gpu_check``,
+    here on the CPU): two training steps of geometry-only Predator and of PCR-CG (deep, implicit) and an
+    evaluation each, on the tiny data (``profile=paper`` itself has never run: no GPU has been lent; ~60 s here)."""
     import json
-    import os
-    import subprocess
-    import sys
 
-    from conftest import REPO, compose
-    from omegaconf import OmegaConf
-
-    paper = OmegaConf.to_container(compose("run", ["profile=paper"]).profile, resolve=True)
-    sizes = [f"profile.model.{k}={paper['model'][k]}" for k in
-             ("voxel_size", "num_layers", "first_dim", "gnn_dim", "max_points", "circle_points")]
-    sizes += [f"profile.encoder2d.{k}={json.dumps(paper['encoder2d'][k]).replace(' ', '')}" for k in
-              ("arch", "out_dim", "decoder_channels", "normalize", "output_scale")]
-    args = [sys.executable, "-m", "pcrcg.run", "profile=tiny", f"data.root={tiny_root}", *sizes, "features=deep",
-            "projection=implicit", "encoder2d=scratch", "profile.train.max_steps=2", "eval.max_pairs=2",
-            f"paths.checkpoints={tmp_path / 'ck'}", f"hydra.run.dir={tmp_path / 'out'}", "runtime.report_on_end=false",
-            "trainer.progress_bar=false"]
-    res = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=600,
-                         env={**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path}/mlflow.db"})
-    assert res.returncode == 0, res.stderr[-3000:]
-    status = json.loads((tmp_path / "out" / "pcrcg_status.json").read_text())
-    assert status["status"] == "finished", status
+    from pcrcg.benchmarks.gpu_check import check
     from pcrcg.models.train import read_checkpoint
 
-    (ckpt,) = (tmp_path / "ck").rglob("last.ckpt")
-    hp = read_checkpoint(ckpt)["hyper_parameters"]
-    text = json.dumps(hp)
+    res = check(tmp_path, device="cpu", steps=2, eval_pairs=2, skip=("tests", "model"), data_root=tiny_root,
+                timeout=600)
+    for name in ("predator", "pcrcg"):
+        run = res["run"][name]
+        assert run["rc"] == 0, run["tail"]
+        assert json.loads((tmp_path / f"run-{name}" / "pcrcg_status.json").read_text())["status"] == "finished"
+        assert run["timings"]["time/train_s"] > 0 and run["metrics"]
+    (ckpt,) = (tmp_path / "ck-pcrcg").rglob("last.ckpt")
+    text = json.dumps(read_checkpoint(ckpt)["hyper_parameters"])
     assert '"first_dim": 128' in text and '"num_layers": 4' in text and '"arch": "resnet50"' in text
+    assert "run pcrcg (paper-sized networks" in (tmp_path / "gpu_check.md").read_text()

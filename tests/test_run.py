@@ -203,6 +203,10 @@ def test_without_tracking(tmp_path, monkeypatch):
     data = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert data["metrics"]["3DMatch/rr"] == pytest.approx(expected_rr(11, 0, 5000, "3DMatch"))
     assert (tmp_path / "out" / "pcrcg_status.json").is_file()
+    # the stage times stay with the run's files where no store keeps them
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    assert {"time/evaluate_s", "time/evaluate_cpu_s", "time/total_s"} <= set(timings)
+    assert 0 <= timings["time/evaluate_s"] <= timings["time/total_s"]
 
 
 def test_every_stage_runs_with_the_trainers_threads(tmp_path, monkeypatch):

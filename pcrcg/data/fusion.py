@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import open3d as o3d
-import open3d.core as o3c
 
 from pcrcg.geometry import backproject, invert
 
@@ -47,6 +45,8 @@ def fuse_frames(
     """
     if not (len(colors) == len(depths) == len(poses)) or len(poses) == 0:
         raise ValueError("fuse_frames needs as many colors, depths and poses, at least one")
+    import open3d as o3d  # here, not at the top: what reads data sets (a run) needs no Open3D
+    import open3d.core as o3c
     world_to_frag = invert(poses[0])
     block_count = cfg.block_count or _estimate_blocks(depths, poses, world_to_frag, K, cfg)
     vbg = o3d.t.geometry.VoxelBlockGrid(

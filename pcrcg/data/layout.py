@@ -503,18 +503,94 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     os.replace(tmp, path)
 
 
+# PLY scalar types -> NumPy kinds (the names of the PLY spec and their sized aliases)
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """Points (N, 3) float64 and colors (N, 3) float64 in [0, 1] (or None) of a PLY file whose first element
+    is ``vertex`` with scalar properties (ascii or binary, either byte order): what :func:`write_ply`
+    writes and most point clouds are, read by NumPy alone, the same values as Open3D's reader (uchar
+    colors / 255, float colors as they are). None for a layout this reader leaves to Open3D (another first
+    element, a list property in the vertices, colors of another type); a file that is not PLY, or holds
+    fewer vertices than its header declares, is a :class:`DataError` naming it."""
+    path = _need(Path(path))
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise DataError(path, "is not a PLY file (no 'ply' magic line)")
+        fmt, elements, props = None, [], []
+        while True:
+            line = f.readline()
+            if not line:
+                raise DataError(path, "PLY header has no end_header line")
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format" and len(words) >= 2:
+                fmt = words[1]
+            elif words[0] == "element" and len(words) == 3:
+                elements.append((words[1], int(words[2])))
+            elif words[0] == "property" and len(elements) == 1:
+                props.append(words[1:])
+        if fmt not in _PLY_FORMATS:
+            raise DataError(path, f"PLY format {fmt!r} is not one of {sorted(_PLY_FORMATS)}")
+        if not elements or elements[0][0] != "vertex" or any(len(p) != 2 or p[0] not in _PLY_TYPES for p in props):
+            return None
+        names = [p[1] for p in props]
+        if not all(c in names for c in "xyz"):
+            raise DataError(path, f"PLY vertices have no x, y, z (properties: {names})")
+        n = elements[0][1]
+        order = _PLY_FORMATS[fmt]
+        if order is None:
+            rows = np.loadtxt(f, dtype=np.float64, max_rows=n, ndmin=2) if n else np.zeros((0, len(props)))
+            if rows.shape != (n, len(props)):
+                raise DataError(path, f"PLY declares {n} vertices of {len(props)} values; the text holds {rows.shape}")
+            cols = {name: rows[:, k] for k, name in enumerate(names)}
+            kinds = {p[1]: _PLY_TYPES[p[0]] for p in props}
+        else:
+            dt = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
+            data = f.read(n * dt.itemsize)
+            if len(data) < n * dt.itemsize:
+                raise DataError(path, f"PLY is truncated: {n} vertices declared, {len(data) // dt.itemsize} present")
+            rec = np.frombuffer(data, dtype=dt, count=n)
+            cols = {name: rec[name] for name in names}
+            kinds = {p[1]: _PLY_TYPES[p[0]] for p in props}
+    pts = np.stack([cols[c].astype(np.float64) for c in "xyz"], axis=1)
+    rgb = ("red", "green", "blue")
+    if not all(c in cols for c in rgb):
+        return pts, None
+    kind = {kinds[c] for c in rgb}
+    if kind == {"u1"}:
+        return pts, np.stack([cols[c].astype(np.float64) / 255.0 for c in rgb], axis=1)
+    if kind <= {"f4", "f8"}:
+        return pts, np.stack([cols[c].astype(np.float64) for c in rgb], axis=1)
+    return None
+
+
 def read_cloud(path: str | os.PathLike, dtype: Any = np.float32) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N, 3) float32 (``dtype``: float64 keeps far-from-origin coordinates exact) and colors
     (N, 3) float32 in [0, 1] or None.
 
-    Reads ``.ply`` / ``.pcd`` (Open3D), ``.npz`` (keys ``points``/``pcd``/``xyz`` and optional
-    ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
+    Reads ``.ply`` (:func:`read_ply`, by NumPy; by Open3D the layouts it leaves), ``.pcd`` (Open3D), ``.npz``
+    (keys ``points``/``pcd``/``xyz`` and optional ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
     ``torch.load(weights_only=True)`` and, failing that (numpy arrays, as in Predator's release:
     legacy non-zip ``torch.save`` files), by a reader that resolves numpy's array reconstruction
     only; no code from the file is ever executed.
     """
     path = _need(Path(path))
     suffix = path.suffix.lower()
+    if suffix == ".ply":
+        read = read_ply(path)
+        if read is not None:
+            pts, cols = read
+            if len(pts) == 0:
+                raise DataError(path, "point cloud is empty or unreadable")
+            return _check_points(pts.astype(dtype), path), None if cols is None else cols.astype(np.float32)
     if suffix in (".ply", ".pcd"):
         import open3d as o3d
 

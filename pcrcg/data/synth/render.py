@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from pcrcg.data.synth.panel import Room
 
@@ -58,7 +57,10 @@ class RoomRenderer:
     def __init__(self, room: Room, sensor: SensorModel | None = None):
         self.room = room
         self.sensor = sensor or SensorModel()
+        import open3d as o3d  # here, not at the top: what reads data sets (a run) needs no Open3D
+
         verts, tris, self.owner = room.mesh_arrays()
+        self._tensor = o3d.core.Tensor
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(verts)
         mesh.triangle.indices = o3d.core.Tensor(tris)
@@ -111,7 +113,7 @@ class RoomRenderer:
         R, t = pose[:3, :3], pose[:3, 3]
         d_world = d_cam @ R.T
         rays = np.concatenate([np.broadcast_to(t, d_world.shape), d_world], 1).astype(np.float32)
-        hit = self.scene.cast_rays(o3d.core.Tensor(rays))
+        hit = self.scene.cast_rays(self._tensor(rays))
         z = hit["t_hit"].numpy().astype(np.float64)  # ray direction has unit z in the camera frame
         prim = hit["primitive_ids"].numpy().astype(np.int64)
         valid = np.isfinite(z) & (prim >= 0) & (prim < len(self.owner))
@@ -149,7 +151,7 @@ class RoomRenderer:
                 idx = np.nonzero(valid & (lam > 0))[0]
                 if len(idx):
                     srays = np.concatenate([pts[idx] + n[idx] * f32(2e-3), ldir[idx]], 1)
-                    t_occ = self.scene.cast_rays(o3d.core.Tensor(srays))["t_hit"].numpy()
+                    t_occ = self.scene.cast_rays(self._tensor(srays))["t_hit"].numpy()
                     contrib[idx[t_occ < dist[idx] - 0.01]] *= 0.15
             shade += contrib
         sky = valid & self.sky[panel]
