@@ -238,6 +238,13 @@ def test_ply_reader_errors_and_what_it_leaves_to_open3d(tmp_path):
     (tmp_path / "f.ply").write_bytes(text.replace(b"binary_little_endian", b"binary_middle"))
     with pytest.raises(DataError, match="PLY format 'binary_middle'"):
         read_ply(tmp_path / "f.ply")
+    (tmp_path / "g.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                                    "property float z\nend_header\n0 0 0\n1 two 3\n")
+    with pytest.raises(DataError, match=r"g\.ply: PLY text is not numbers"):
+        read_ply(tmp_path / "g.ply")
+    (tmp_path / "e.ply").write_text("ply\nformat ascii 1.0\nelement vertex many\nend_header\n")
+    with pytest.raises(DataError, match=r"e\.ply: PLY element 'vertex' has no count"):
+        read_ply(tmp_path / "e.ply")
     _ply(tmp_path / "q.ply", "ascii", [("float", "a"), ("float", "b"), ("float", "c")], [(0, 0, 0)])
     with pytest.raises(DataError, match="no x, y, z"):
         read_ply(tmp_path / "q.ply")

@@ -11,16 +11,17 @@ and ``DIR/gpu_check.json`` (the figures) beside every step's log (``--copy-to``:
    real 3DMatch pair has ~35k);
 3. ``run``: the main job through a run's real stages on the device (Lightning's ``trainer=gpu``,
    ``runtime.device``) with the paper profile's networks (:func:`paper_sized_overrides`) on the tiny
-   generated data: geometry-only Predator, then PCR-CG (deep, Pri3D-free scratch Res50 UNet, implicit
+   generated data: geometry-only Predator, then PCR-CG (deep, a scratch Res50 UNet, implicit
    projection), ``--steps`` training steps and ``--eval-pairs`` test pairs per benchmark each, without a
    store (``logger=none``): the runs' stage times (``timings.json``) and recalls.
 
 ``profile=paper`` as a whole needs the paper's data (640x480 rooms, ~24 min each to generate on a CPU) and
 30 epochs: this is the smoke test that the issue asks of a lent GPU, sized to fit one call of the device tool
-(about 8 minutes on an H100 with the defaults). What the machine lacks is carried: the device image has no
-Hydra or OmegaConf (wheels: ``--download-wheels DIR`` here, where pip reaches the registries), and none of
-Open3D, MLflow or kornia is needed by these steps (a run reads PLY fragments by NumPy and ``logger=none``
-keeps no store). With ``--device cpu`` the same steps run here (a rehearsal: ``--steps 2 --eval-pairs 2``).
+(about 8 minutes with the defaults, an estimate: it has never run on a GPU; each step stops at ``--timeout``).
+What the machine lacks is carried: the device image has no Hydra or OmegaConf (wheels: ``--download-wheels
+DIR`` here, where pip reaches the registries), and none of Open3D, MLflow or kornia is needed by these steps (a
+run reads PLY fragments by NumPy and ``logger=none`` keeps no store). With ``--device cpu`` the same steps run
+here (a rehearsal: ``--steps 2 --eval-pairs 2``).
 
 On a session's lent machine (the device tool's ``run``; README "On a GPU, and on several")::
 
@@ -45,7 +46,7 @@ from typing import Any, Sequence
 
 REPO = Path(__file__).resolve().parents[2]
 STEPS = ("tests", "model", "run")
-# what the device image lacks of the run's dependencies (conf of the device tool: its package list); pure Python
+# what the device image lacks of a run's dependencies (the device tool's list of its packages); pure Python
 WHEELS = ("hydra-core==1.3.8", "omegaconf==2.3.0", "antlr4-python3-runtime==4.9.3")
 
 
@@ -69,7 +70,7 @@ def run_commands(out: Path, device: str, steps: int, eval_pairs: int, data_root:
     """The two runs of step 3 (name -> argv): Predator and PCR-CG with the paper's networks on ``data_root``."""
     common = ["profile=tiny", f"data.root={data_root}", "logger=none", "runtime.report_on_end=false",
               "trainer.progress_bar=false", f"runtime.device={device}", f"profile.train.max_steps={steps}",
-              f"eval.max_pairs={eval_pairs}"]
+              f"eval.max_pairs={eval_pairs}", "runtime.reuse_checkpoints=false"]
     if device.startswith("cuda"):
         common.append("trainer=gpu")
     runs = {"predator": ["features=none", *paper_sized_overrides(False)],
@@ -117,7 +118,7 @@ def _save(result: dict[str, Any], out: Path, copy_to: Path | None) -> None:
 
 
 def check(out: Path, device: str = "cuda", steps: int = 150, eval_pairs: int = 20, skip: Sequence[str] = (),
-          data_root: Path | None = None, timeout: float = 240.0, copy_to: Path | None = None) -> dict[str, Any]:
+          data_root: Path | None = None, timeout: float = 200.0, copy_to: Path | None = None) -> dict[str, Any]:
     """Run the checks (module docstring) into ``out``; returns the figures written to ``gpu_check.json``."""
     out.mkdir(parents=True, exist_ok=True)
     data_root = data_root or REPO / "data" / "synthmatch-tiny"

@@ -534,6 +534,8 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None] | 
             if words[0] == "format" and len(words) >= 2:
                 fmt = words[1]
             elif words[0] == "element" and len(words) == 3:
+                if not words[2].isdigit():
+                    raise DataError(path, f"PLY element {words[1]!r} has no count: {line.strip()[:80]!r}")
                 elements.append((words[1], int(words[2])))
             elif words[0] == "property" and len(elements) == 1:
                 props.append(words[1:])
@@ -546,12 +548,15 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None] | 
             raise DataError(path, f"PLY vertices have no x, y, z (properties: {names})")
         n = elements[0][1]
         order = _PLY_FORMATS[fmt]
+        kinds = {p[1]: _PLY_TYPES[p[0]] for p in props}
         if order is None:
-            rows = np.loadtxt(f, dtype=np.float64, max_rows=n, ndmin=2) if n else np.zeros((0, len(props)))
+            try:
+                rows = np.loadtxt(f, dtype=np.float64, max_rows=n, ndmin=2) if n else np.zeros((0, len(props)))
+            except ValueError as exc:
+                raise DataError(path, f"PLY text is not numbers ({' '.join(str(exc).split())[:120]})") from None
             if rows.shape != (n, len(props)):
                 raise DataError(path, f"PLY declares {n} vertices of {len(props)} values; the text holds {rows.shape}")
             cols = {name: rows[:, k] for k, name in enumerate(names)}
-            kinds = {p[1]: _PLY_TYPES[p[0]] for p in props}
         else:
             dt = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
             data = f.read(n * dt.itemsize)
@@ -559,7 +564,6 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None] | 
                 raise DataError(path, f"PLY is truncated: {n} vertices declared, {len(data) // dt.itemsize} present")
             rec = np.frombuffer(data, dtype=dt, count=n)
             cols = {name: rec[name] for name in names}
-            kinds = {p[1]: _PLY_TYPES[p[0]] for p in props}
     pts = np.stack([cols[c].astype(np.float64) for c in "xyz"], axis=1)
     rgb = ("red", "green", "blue")
     if not all(c in cols for c in rgb):
@@ -577,8 +581,8 @@ def read_cloud(path: str | os.PathLike, dtype: Any = np.float32) -> tuple[np.nda
     (N, 3) float32 in [0, 1] or None.
 
     Reads ``.ply`` (:func:`read_ply`, by NumPy; by Open3D the layouts it leaves), ``.pcd`` (Open3D), ``.npz``
-    (keys ``points``/``pcd``/``xyz`` and optional ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is opened with
-    ``torch.load(weights_only=True)`` and, failing that (numpy arrays, as in Predator's release:
+    (keys ``points``/``pcd``/``xyz`` and optional ``colors``) and Predator's ``.pth`` arrays. A ``.pth`` is
+    opened with ``torch.load(weights_only=True)`` and, failing that (numpy arrays, as in Predator's release:
     legacy non-zip ``torch.save`` files), by a reader that resolves numpy's array reconstruction
     only; no code from the file is ever executed.
     """
