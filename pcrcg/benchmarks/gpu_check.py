@@ -130,7 +130,8 @@ def check(out: Path, device: str = "cuda", steps: int = 150, eval_pairs: int = 2
                                  "tests/test_gpu.py"], out / "tests.log", timeout)
         _save(result, out, copy_to)
     missing = None if (data_root / "manifest.json").is_file() else {
-        "error": f"{data_root}: no data set (python -m pcrcg.prepare profile=tiny where Open3D is, then carry it)"}
+        "error": f"{data_root}: no data set (python -m pcrcg.prepare data=synthmatch profile=tiny where Open3D is, "
+                 "then carry it)"}
     if "model" not in skip:
         result["model"] = missing or {}
         for color in () if missing else ("none", "deep"):
