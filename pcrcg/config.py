@@ -29,6 +29,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from pcrcg.data.layout import BENCHMARKS
 from pcrcg.errors import ConfigError
+from pcrcg.lifting.config import COMBINE, VIEWS, WINDOW_STYLES, check_official_window
 from pcrcg.tracking.git import DEFAULT_IDENTITY, IDENTITIES
 from pcrcg.vision.matching import LEARNED_METHODS, METHODS as MATCHER_METHODS, PAIR_MODES
 
@@ -37,7 +38,6 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 METHODS = ("learned", "fpfh", "icp", "color_icp", "sift_dlt", "sift_lifted")
 CLASSICAL_METHODS = METHODS[1:]
 ICP_METHODS = ("icp", "color_icp")
-VIEWS = (1, 2, 3)
 ICP_INIT = ("identity", "learned")
 # the sizes N of Predator's protocol, largest first: the default of eval.n_points and of
 # pcrcg.registration.RegistrationConfig.n_points (the one home of this tuple)
@@ -553,8 +553,8 @@ GROUP_RULES: dict[str, Any] = {
     "projection.views": lambda k, v: _one_of(k, v, VIEWS),
     "projection.window_size": lambda k, v: check_top_level("window_size", v),
     "projection.depth_tolerance": _positive,
-    "projection.combine": lambda k, v: _one_of(k, v, ("overwrite", "mean")),  # lifting.config.COMBINE
-    "projection.window_style": lambda k, v: _one_of(k, v, ("centred", "official")),  # lifting.config.WINDOW_STYLES
+    "projection.combine": lambda k, v: _one_of(k, v, COMBINE),
+    "projection.window_style": lambda k, v: _one_of(k, v, WINDOW_STYLES),
     "matcher2d.method": lambda k, v: _one_of(k, v, MATCHER_METHODS),
     "matcher2d.pairs": lambda k, v: _one_of(k, v, PAIR_MODES),
     "matcher2d.ratio": _fraction,
@@ -631,9 +631,7 @@ def _check_rules(top: RunSchema, data: Mapping[str, Any]) -> None:
     if top.method == "learned" and feats not in (None, "none") and proj in ("none",):
         raise ConfigError("projection", proj, f"implicit or explicit when features={feats}")
     pnode = data.get("projection") if isinstance(data.get("projection"), Mapping) else {}
-    if proj == "explicit" and pnode.get("window_style") == "official" and int(pnode.get("window_size") or 0) < 3:
-        raise ConfigError("window_size", pnode.get("window_size"), "3 or more with projection.window_style=official "
-                          "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
+    check_official_window(proj, pnode.get("window_style"), pnode.get("window_size"), "window_size")
 
 
 def preflight(cfg: DictConfig | Mapping[str, Any]) -> None:

@@ -276,3 +276,15 @@ def test_a_pyramid_cache_folder_that_cannot_be_written_is_refused_at_the_start(c
     assert err.setting == "profile.train.pyramid_cache" and "is a file" in err.allowed
     cfg = load_run_config(["profile=tiny", f"trainer.cache_dir={tmp_path / 'not' / 'yet'}"], conf)
     assert cfg.trainer.cache_dir.endswith("not/yet") and not (tmp_path / "not").exists()
+
+
+def test_config_check_imports_no_torch() -> None:
+    """The config check runs before any long work: it takes the projection's rules from pcrcg.lifting.config
+    (their one home) without the projection module, so checking a config never imports torch."""
+    import subprocess
+    import sys
+
+    code = ("import sys, pcrcg.config, pcrcg.lifting.config; "
+            "assert 'torch' not in sys.modules, 'torch imported'; "
+            "from pcrcg.lifting import ColorLifter; assert 'torch' in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -35,27 +35,14 @@ window centred on a 2D match and scales the feature by the match confidence; the
 views that cover a point are averaged; uncovered points get zeros. The gather is differentiable.
 """
 
-from pcrcg.lifting.config import FEATURES, PROJECTIONS, LiftingConfig
-from pcrcg.lifting.projection import (
-    ColorLifter,
-    LiftedPair,
-    ViewKeypoints,
-    build_lifter,
-    color_coverage,
-    keypoints_per_view,
-    lift_pair,
-    pair_coverage,
-    pair_covered,
-    project_points,
-    window_weight_map,
-)
+from typing import Any
 
-__all__ = [
-    "FEATURES",
-    "PROJECTIONS",
+# The names below load on first use (PEP 562), so that pcrcg.lifting.config, which the config check imports,
+# does not bring in torch with the projection module.
+_FROM_CONFIG = ("FEATURES", "PROJECTIONS", "LiftingConfig")
+_FROM_PROJECTION = (
     "ColorLifter",
     "LiftedPair",
-    "LiftingConfig",
     "ViewKeypoints",
     "build_lifter",
     "color_coverage",
@@ -65,4 +52,16 @@ __all__ = [
     "pair_covered",
     "project_points",
     "window_weight_map",
-]
+)
+
+
+def __getattr__(name: str) -> Any:
+    import importlib
+
+    for module, names in (("config", _FROM_CONFIG), ("projection", _FROM_PROJECTION)):
+        if name in names:
+            return getattr(importlib.import_module(f"pcrcg.lifting.{module}"), name)
+    raise AttributeError(f"module 'pcrcg.lifting' has no attribute {name!r}")
+
+
+__all__ = [*_FROM_CONFIG, *_FROM_PROJECTION]

@@ -11,7 +11,16 @@ PROJECTIONS = ("none", "implicit", "explicit")
 COMBINE = ("overwrite", "mean")
 WINDOW_STYLES = ("centred", "official")
 FEATURES = ("none", "rgb", "sift", "deep", "disk")
+VIEWS = (1, 2, 3)  # the first, last and middle frame of each fragment
 _DEFAULT_DIM = {"none": 0, "rgb": 3, "sift": 32, "deep": 32, "disk": 32}
+
+
+def check_official_window(projection: Any, window_style: Any, window_size: Any, key: str) -> None:
+    """The official code's windows are ``2 * ((window_size - 1) // 2)`` pixels wide: none at 1. Raises
+    :class:`ConfigError` naming ``key`` for an explicit projection with official windows below 3."""
+    if projection == "explicit" and window_style == "official" and int(window_size or 0) < 3:
+        raise ConfigError(key, window_size, "3 or more with projection.window_style=official "
+                          "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
 
 
 @dataclass
@@ -62,16 +71,14 @@ class LiftingConfig:
             raise ConfigError("projection.name", self.projection, " | ".join(PROJECTIONS))
         if self.features not in FEATURES:
             raise ConfigError("features.name", self.features, " | ".join(FEATURES))
-        if isinstance(self.views, bool) or not isinstance(self.views, int) or not 1 <= self.views <= 3:
+        if isinstance(self.views, bool) or not isinstance(self.views, int) or self.views not in VIEWS:
             raise ConfigError("projection.views", self.views, "1, 2 or 3 (first, last, middle frame)")
         ws = self.window_size
         if isinstance(ws, bool) or not isinstance(ws, int) or ws < 1 or ws % 2 == 0:
             raise ConfigError("projection.window_size", ws, "an odd integer >= 1 (pixels)")
         if self.window_style not in WINDOW_STYLES:
             raise ConfigError("projection.window_style", self.window_style, " | ".join(WINDOW_STYLES))
-        if self.projection == "explicit" and self.window_style == "official" and ws < 3:
-            raise ConfigError("projection.window_size", ws, "3 or more with projection.window_style=official "
-                              "(its windows are 2 * ((window_size - 1) // 2) pixels wide: none at 1)")
+        check_official_window(self.projection, self.window_style, ws, "projection.window_size")
         try:
             tol = float(self.depth_tolerance)
         except (TypeError, ValueError):
