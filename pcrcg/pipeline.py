@@ -92,6 +92,18 @@ class Clock:
         return {f"time/{stage}_s": self.wall(), f"time/{stage}_cpu_s": self.cpu()}
 
 
+def run_seconds(metrics: Mapping[str, float], stage: str = "total", cpu: bool = False) -> float | None:
+    """A finished run's wall (or CPU) seconds of ``stage`` (``total``, ``train``, ...) from its logged ``metrics``,
+    with, for ``total`` and ``train``, what the earlier starts of a resumed training spent up to its checkpoint
+    (``time/train_earlier_s``): the run's cost as if it had not been interrupted. None when not logged."""
+    value = metrics.get(f"time/{stage}_cpu_s" if cpu else f"time/{stage}_s")
+    if value is None:
+        return None
+    if stage in ("total", "train"):
+        value += metrics.get("time/train_earlier_cpu_s" if cpu else "time/train_earlier_s", 0.0)
+    return float(value)
+
+
 @dataclass
 class TrainOutput:
     """What training leaves: the checkpoint file and curves ``{name: [v0, v1, ...]}`` (step = index)
@@ -565,6 +577,8 @@ def _work(ctx: RunContext, data: Mapping[str, Any], h: str, clock: Clock):
         t = Clock()
         trained = _stage(cfg.stages.train)(ctx)
         timings.update(t.metrics("train"))
+        # a resumed training's earlier starts (time/train_earlier_s, ..._cpu_s): with the stage times
+        timings.update({k: trained.metrics.pop(k) for k in list(trained.metrics) if k.startswith("time/")})
         ctx.checkpoint = trained.checkpoint
         _log_training(ctx, trained)
     yield "evaluate"

@@ -209,6 +209,27 @@ def test_without_tracking(tmp_path, monkeypatch):
     assert 0 <= timings["time/evaluate_s"] <= timings["time/total_s"]
 
 
+def test_a_resumed_trainings_earlier_seconds_stay_with_the_stage_times(tmp_path, monkeypatch):
+    """The seconds a resumed training's earlier starts spent are logged with the stage times (timings.json and
+    the store's time/ metrics), and the store's readers count them in the run's total."""
+    from pcrcg.pipeline import run_seconds
+    from pcrcg.tracking.store import client
+
+    conf = make_conf(tmp_path / "conf")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    args = ["--config-path", str(conf), "profile=tiny", FAKES[0], "stages.train=test_run_support.resumed_train",
+            FAKES[2], "experiment_name=resumed", f"hydra.run.dir={tmp_path}/out"]
+    assert run_cli(args, tmp_path, monkeypatch) == 0
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    assert timings["time/train_earlier_s"] == 400.0 and timings["time/train_earlier_cpu_s"] == 300.0
+    c = client(uri)
+    (run,) = c.search_runs([c.get_experiment_by_name("resumed").experiment_id])
+    m = run.data.metrics
+    assert m["time/train_earlier_s"] == 400.0 and m["train/resumed_from_step"] == 5.0
+    assert run_seconds(m) == pytest.approx(m["time/total_s"] + 400.0)
+
+
 def test_every_stage_runs_with_the_trainers_threads(tmp_path, monkeypatch):
     """A run whose training is skipped (a reused checkpoint, here a fake train stage that sets nothing)
     still evaluates with ``trainer.num_threads`` (the tiny profile's 1), torch's and the native pools'
@@ -328,3 +349,16 @@ def test_clock_counts_cpu_seconds_not_waiting_and_ended_children():
     spent = clock.metrics("stage")
     assert set(spent) == {"time/stage_s", "time/stage_cpu_s"}
     assert spent["time/stage_cpu_s"] >= 0.3 and spent["time/stage_s"] >= 0.3
+
+
+def test_run_seconds_add_a_resumed_trainings_earlier_starts():
+    """A run whose training resumed counts what its earlier starts spent up to the checkpoint, in its training
+    and total seconds (not in the other stages'); a run that did not resume, and one that logged no time, as is."""
+    from pcrcg.pipeline import run_seconds
+
+    m = {"time/total_s": 100.0, "time/total_cpu_s": 80.0, "time/train_s": 10.0, "time/train_cpu_s": 9.0,
+         "time/evaluate_s": 60.0, "time/train_earlier_s": 500.0, "time/train_earlier_cpu_s": 450.0}
+    assert run_seconds(m) == 600.0 and run_seconds(m, cpu=True) == 530.0
+    assert run_seconds(m, "train") == 510.0 and run_seconds(m, "train", cpu=True) == 459.0
+    assert run_seconds(m, "evaluate") == 60.0 and run_seconds(m, "evaluate", cpu=True) is None
+    assert run_seconds({"time/total_s": 100.0}) == 100.0 and run_seconds({}) is None

@@ -64,6 +64,13 @@ def fake_train(ctx: RunContext) -> TrainOutput:
     return TrainOutput(checkpoint=ckpt, history={"train/loss": [1.0, 0.5, 0.25], "val/loss": [(0, 1.2), (2, 0.6)]})
 
 
+def resumed_train(ctx: RunContext) -> TrainOutput:
+    """:func:`fake_train`, as a training resumed from a checkpoint says so: the earlier starts' seconds."""
+    out = fake_train(ctx)
+    out.metrics = {"train/resumed_from_step": 5.0, "time/train_earlier_s": 400.0, "time/train_earlier_cpu_s": 300.0}
+    return out
+
+
 def threads_evaluate(ctx: RunContext) -> EvalOutput:
     """:func:`fake_evaluate`, after writing the torch CPU threads it runs with and the native pools' (OpenBLAS,
     OpenMP: :func:`native_threads`) to ``eval_threads.txt``."""

@@ -167,6 +167,8 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root3, 
     assert saves and all(w is False for w in saves)  # the full state, said explicitly (no log line per save)
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == 2 and ck["optimizer_states"][0]["state"]  # momentum buffers saved
+    spent = ck["callbacks"]["TrainingClock"]  # the seconds of the start that wrote it, up to then
+    assert spent["wall_s"] > 0 and spent["cpu_s"] > 0
     assert len(ck["hyper_parameters"]["model"]["neighbor_limits"]) == 3
     assert list((out_dir / "logs").glob("version_0/metrics.csv"))  # curves from a 2-step run
     w_before = ck["state_dict"]["net.encoder.0.conv.weights"]
@@ -176,9 +178,13 @@ def test_interrupted_training_resumes_from_last_checkpoint(tmp_path, toy_root3, 
     res = train(cfg, out_dir=out_dir, callbacks=[second])
     assert second.steps == 2
     assert res["metrics"]["train/global_step"] == 4 and res["metrics"]["train/resumed_from_step"] == 2, res["metrics"]
+    # what the first start spent up to its checkpoint, for the run's time (time/train_s counts this start only)
+    assert res["metrics"]["time/train_earlier_s"] == pytest.approx(spent["wall_s"])
+    assert res["metrics"]["time/train_earlier_cpu_s"] == pytest.approx(spent["cpu_s"])
     assert any(k.startswith("train/loss") for k in res["history"])
     ck2 = torch.load(res["last_checkpoint"], map_location="cpu", weights_only=False)
     assert ck2["global_step"] == 4 and ck2["epoch"] >= ck["epoch"]
+    assert ck2["callbacks"]["TrainingClock"]["wall_s"] > spent["wall_s"]  # both starts' seconds
     assert not torch.equal(ck2["state_dict"]["net.encoder.0.conv.weights"], w_before)
     assert list((out_dir / "logs").glob("version_1/metrics.csv"))  # the first curves are kept
     # a finished run called again does nothing more

@@ -120,6 +120,7 @@ def stage_rows(uri: str, code: str | None = None) -> list[dict[str, Any]]:
     RANSAC ranking; only ``code``'s when given): ``{"experiment", "name", "features", "score", "code", "steps",
     "pairs", "wall": {stage: s}, "cpu": {stage: s}}`` (``cpu`` empty for runs of code before 2026-12-05,
     which logged wall seconds only; ``pairs``: the test pairs of the generated benchmarks evaluated)."""
+    from pcrcg.pipeline import run_seconds
     from pcrcg.tracking.store import client, require_store
     from pcrcg.tracking.tracker import TAG_CODE
 
@@ -142,8 +143,8 @@ def stage_rows(uri: str, code: str | None = None) -> list[dict[str, Any]]:
             "experiment": exp, "name": r.info.run_name or "", "features": key[1], "score": key[2],
             "code": r.data.tags.get(TAG_CODE, "?"), "steps": int(m["train/global_step"]),
             "pairs": int(sum(v for k, v in m.items() if k.count("/") == 1 and k.endswith("/n_pairs"))),
-            "wall": {s: m[f"time/{s}_s"] for s in STAGES if f"time/{s}_s" in m},
-            "cpu": {s: m[f"time/{s}_cpu_s"] for s in STAGES if f"time/{s}_cpu_s" in m},
+            "wall": {s: run_seconds(m, s) for s in STAGES if f"time/{s}_s" in m},
+            "cpu": {s: run_seconds(m, s, cpu=True) for s in STAGES if f"time/{s}_cpu_s" in m},
         }
     return list(newest.values())
 

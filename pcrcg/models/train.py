@@ -55,6 +55,8 @@ from pcrcg.registration.feature_registration import FragmentOutput
 from pcrcg.safeload import load_tensors
 
 LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
+# a resumed training's earlier starts, in seconds up to the checkpoint it resumed from (:class:`TrainingClock`)
+EARLIER_S, EARLIER_CPU_S = "time/train_earlier_s", "time/train_earlier_cpu_s"
 
 
 def _container(node: Any) -> Any:
@@ -199,6 +201,37 @@ class GlobalRngState(Callback):
         random.setstate((version, tuple(internal), gauss))
 
 
+class TrainingClock(Callback):
+    """The wall and CPU seconds of a training across its starts. A checkpoint holds the seconds spent until it was
+    written; a run resumed from it starts from them, so that :meth:`earlier` is what the earlier starts cost up to
+    that checkpoint (what an interrupted start ran after its last checkpoint is lost, and not counted). Plain floats
+    in the checkpoint (it still loads with ``weights_only=True``)."""
+
+    def __init__(self) -> None:
+        self._earlier = (0.0, 0.0)
+        self._start: tuple[float, float] | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        from pcrcg.pipeline import cpu_seconds
+
+        self._start = (time.perf_counter(), cpu_seconds())
+
+    def earlier(self) -> tuple[float, float]:
+        """(wall, cpu) seconds of the earlier starts, up to the checkpoint this start resumed from ((0, 0): none)."""
+        return self._earlier
+
+    def state_dict(self) -> dict[str, float]:
+        from pcrcg.pipeline import cpu_seconds
+
+        wall, cpu = self._earlier
+        if self._start is not None:
+            wall, cpu = wall + time.perf_counter() - self._start[0], cpu + cpu_seconds() - self._start[1]
+        return {"wall_s": float(wall), "cpu_s": float(cpu)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._earlier = (float(state.get("wall_s", 0.0)), float(state.get("cpu_s", 0.0)))
+
+
 def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
                   extra_callbacks: Sequence[Callback] = ()) -> tuple[L.Trainer, "LastCheckpoint", ModelCheckpoint]:
     """The Lightning trainer with ``last.ckpt`` / ``best.ckpt``; returns (trainer, last_cb, best_cb)."""
@@ -323,7 +356,8 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
 
     hist = HistoryCallback()
     external_logger = logger not in (None, False)
-    trainer, last_cb, best_cb = build_trainer(tcfg, out, logger, [hist, *callbacks])
+    clock = TrainingClock()
+    trainer, last_cb, best_cb = build_trainer(tcfg, out, logger, [hist, clock, *callbacks])
     last = _checkpoint_dir(out) / "last.ckpt"
     resumed_at = _resumable(last, module) if tcfg.get("resume", True) and last.is_file() else None
     _fit(trainer, module, datamodule, str(last) if resumed_at is not None else None)
@@ -333,6 +367,9 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
                "train/in_dim": float(module.in_dim),
                # provenance: resumed from last.ckpt at this step (0: not); bit for bit the uninterrupted run
                "train/resumed_from_step": float(resumed_at or 0)}
+    if resumed_at:
+        # what the earlier starts spent up to that checkpoint (a run's time/train_s counts this start only)
+        metrics[EARLIER_S], metrics[EARLIER_CPU_S] = clock.earlier()
     if best_cb.best_model_score is not None:
         metrics[f"best/{best_cb.monitor}"] = float(best_cb.best_model_score)
     return {"checkpoint": best if best and Path(best).is_file() else str(last), "last_checkpoint": str(last),

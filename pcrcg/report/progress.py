@@ -22,7 +22,9 @@ does), hashes it as a run does (:func:`pcrcg.pipeline.run_hash`) and looks the h
   from the identity or FPFH: the sweep runs it once and skips it at the other seeds).
 
 A finished run's CPU time (``time/total_cpu_s``, logged since 2026-12-05: :class:`pcrcg.pipeline.Clock`) is what it
-cost on a core of its own; its wall time adds the time it waited for a core beside the other lanes.
+cost on a core of its own; its wall time adds the time it waited for a core beside the other lanes. A run whose
+training resumed from a checkpoint counts what its earlier starts spent up to that checkpoint
+(:func:`pcrcg.pipeline.run_seconds`; logged since 2026-12-08).
 The time left is the sum, over the jobs not finished, of the median wall time (``time/total_s``) of the finished
 runs of the same job at other seeds (else of the experiment's), divided by ``--lanes``; a job with neither is
 counted apart. Read-only: the store is opened, never written.
@@ -117,6 +119,7 @@ def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str
     """Per experiment name, its runs: ``{"id", "hash", "code", "status", "seconds", "cpu", "name", "stale", "data"}``
     (read-only; ``stale``: RUNNING, and its process on this host is gone; ``data``: the prefixes of its metrics
     ``<name>/...``, e.g. the real scene's, that ``pcrcg.evaluate mode=tracked name=<name>`` logged)."""
+    from pcrcg.pipeline import run_seconds
     from pcrcg.tracking.store import client, require_store
     from pcrcg.tracking.tracker import TAG_CODE, TAG_HASH, is_stale
 
@@ -127,8 +130,8 @@ def _store_runs(uri: str, experiments: Iterable[str]) -> dict[str, list[dict[str
         exp = c.get_experiment_by_name(name)
         runs = c.search_runs([exp.experiment_id], max_results=50000) if exp is not None else []
         out[name] = [{"id": r.info.run_id, "hash": r.data.tags.get(TAG_HASH), "code": r.data.tags.get(TAG_CODE),
-                      "status": r.info.status, "seconds": r.data.metrics.get("time/total_s"),
-                      "cpu": r.data.metrics.get("time/total_cpu_s"),
+                      "status": r.info.status, "seconds": run_seconds(r.data.metrics),
+                      "cpu": run_seconds(r.data.metrics, cpu=True),
                       "name": r.info.run_name or "", "stale": is_stale(r.info.status, r.data.tags),
                       "data": {k.split("/", 1)[0] for k in r.data.metrics if "/" in k}}
                      for r in runs]
