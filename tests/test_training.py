@@ -489,3 +489,18 @@ def test_the_matchability_loss_is_on_as_each_official_trainer_has_it():
     assert float(schedule.matchability_gate) == 0.0 and [validate(schedule, r) for r in (0.2, 0.4)] == [0.0, 1.0]
     with pytest.raises(ConfigError, match="model.loss.matchability_after_recall"):
         PCRCGModule({**base, "loss": {"matchability_after_recall": "predator"}})
+
+
+def test_the_training_clock_reads_what_a_checkpoint_holds():
+    """The seconds a checkpoint holds come back as the earlier starts'; a value that is not a non-negative number
+    (a damaged or hand-edited checkpoint) counts as none rather than stopping the resumed run."""
+    from pcrcg.models.train import TrainingClock
+
+    clock = TrainingClock()
+    assert clock.earlier() == (0.0, 0.0) and clock.state_dict() == {"wall_s": 0.0, "cpu_s": 0.0}
+    clock.load_state_dict({"wall_s": 12.5, "cpu_s": 10})
+    assert clock.earlier() == (12.5, 10.0) and clock.state_dict() == {"wall_s": 12.5, "cpu_s": 10.0}
+    clock.load_state_dict({"wall_s": "soon", "cpu_s": float("nan")})
+    assert clock.earlier() == (0.0, 0.0)
+    clock.load_state_dict({"wall_s": -3.0})
+    assert clock.earlier() == (0.0, 0.0)

@@ -29,6 +29,7 @@
 from __future__ import annotations
 
 import copy
+import math
 import os
 import random
 import signal
@@ -229,7 +230,14 @@ class TrainingClock(Callback):
         return {"wall_s": float(wall), "cpu_s": float(cpu)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._earlier = (float(state.get("wall_s", 0.0)), float(state.get("cpu_s", 0.0)))
+        def seconds(key: str) -> float:  # provenance only: a value that is not a number counts as none
+            try:
+                value = float(state.get(key, 0.0))
+            except (TypeError, ValueError):
+                return 0.0
+            return value if math.isfinite(value) and value >= 0 else 0.0
+
+        self._earlier = (seconds("wall_s"), seconds("cpu_s"))
 
 
 def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
