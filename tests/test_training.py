@@ -498,7 +498,9 @@ def test_the_training_clock_reads_what_a_checkpoint_holds():
 
     clock = TrainingClock()
     assert clock.earlier() == (0.0, 0.0) and clock.state_dict() == {"wall_s": 0.0, "cpu_s": 0.0}
+    assert not clock.restored  # a checkpoint without the clock (older code): its run logs no earlier seconds
     clock.load_state_dict({"wall_s": 12.5, "cpu_s": 10})
+    assert clock.restored
     assert clock.earlier() == (12.5, 10.0) and clock.state_dict() == {"wall_s": 12.5, "cpu_s": 10.0}
     clock.load_state_dict({"wall_s": "soon", "cpu_s": float("nan")})
     assert clock.earlier() == (0.0, 0.0)

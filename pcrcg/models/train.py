@@ -211,6 +211,7 @@ class TrainingClock(Callback):
     def __init__(self) -> None:
         self._earlier = (0.0, 0.0)
         self._start: tuple[float, float] | None = None
+        self.restored = False  # the checkpoint resumed from held this clock's state (code before 2026-12-08: not)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         from pcrcg.pipeline import cpu_seconds
@@ -238,6 +239,7 @@ class TrainingClock(Callback):
             return value if math.isfinite(value) and value >= 0 else 0.0
 
         self._earlier = (seconds("wall_s"), seconds("cpu_s"))
+        self.restored = True
 
 
 def build_trainer(tcfg: Mapping[str, Any], out_dir: Path, logger: Logger | Sequence[Logger] | bool | None = None,
@@ -375,7 +377,7 @@ def train(cfg: Any, data_root: str | Path | None = None, out_dir: str | Path | N
                "train/in_dim": float(module.in_dim),
                # provenance: resumed from last.ckpt at this step (0: not); bit for bit the uninterrupted run
                "train/resumed_from_step": float(resumed_at or 0)}
-    if resumed_at:
+    if resumed_at and clock.restored:
         # what the earlier starts spent up to that checkpoint (a run's time/train_s counts this start only)
         metrics[EARLIER_S], metrics[EARLIER_CPU_S] = clock.earlier()
     if best_cb.best_model_score is not None:
