@@ -92,6 +92,11 @@ class Clock:
         return {f"time/{stage}_s": self.wall(), f"time/{stage}_cpu_s": self.cpu()}
 
 
+# what the earlier starts of a resumed training spent up to its checkpoint (pcrcg.models.train.TrainingClock),
+# logged with the stage times
+EARLIER_S, EARLIER_CPU_S = "time/train_earlier_s", "time/train_earlier_cpu_s"
+
+
 def run_seconds(metrics: Mapping[str, float], stage: str = "total", cpu: bool = False) -> float | None:
     """A finished run's wall (or CPU) seconds of ``stage`` (``total``, ``train``, ...) from its logged ``metrics``,
     with, for ``total`` and ``train``, what the earlier starts of a resumed training spent up to its checkpoint
@@ -100,7 +105,7 @@ def run_seconds(metrics: Mapping[str, float], stage: str = "total", cpu: bool = 
     if value is None:
         return None
     if stage in ("total", "train"):
-        value += metrics.get("time/train_earlier_cpu_s" if cpu else "time/train_earlier_s", 0.0)
+        value += metrics.get(EARLIER_CPU_S if cpu else EARLIER_S, 0.0)
     return float(value)
 
 

@@ -52,12 +52,11 @@ from pcrcg.errors import ConfigError, DataError, one_line
 from pcrcg.fields import lookup
 from pcrcg.models.datamodule import PairDataModule, pair_from_clouds
 from pcrcg.models.module import PairOutput, PCRCGModule, build_lifter_from
+from pcrcg.pipeline import EARLIER_CPU_S, EARLIER_S, cpu_seconds
 from pcrcg.registration.feature_registration import FragmentOutput
 from pcrcg.safeload import load_tensors
 
 LIFTING_NODES = ("projection", "features", "encoder2d", "matcher2d")
-# a resumed training's earlier starts, in seconds up to the checkpoint it resumed from (:class:`TrainingClock`)
-EARLIER_S, EARLIER_CPU_S = "time/train_earlier_s", "time/train_earlier_cpu_s"
 
 
 def _container(node: Any) -> Any:
@@ -214,8 +213,6 @@ class TrainingClock(Callback):
         self.restored = False  # the checkpoint resumed from held this clock's state (code before 2026-12-08: not)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        from pcrcg.pipeline import cpu_seconds
-
         self._start = (time.perf_counter(), cpu_seconds())
 
     def earlier(self) -> tuple[float, float]:
@@ -223,8 +220,6 @@ class TrainingClock(Callback):
         return self._earlier
 
     def state_dict(self) -> dict[str, float]:
-        from pcrcg.pipeline import cpu_seconds
-
         wall, cpu = self._earlier
         if self._start is not None:
             wall, cpu = wall + time.perf_counter() - self._start[0], cpu + cpu_seconds() - self._start[1]
